@@ -1,0 +1,58 @@
+"""Rigid-body helpers: 4x4 homogeneous transforms and quaternions (x, y, z, w order, as TUM)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_transform(rotation: np.ndarray | None = None,
+                   translation: np.ndarray | None = None) -> np.ndarray:
+    """Build a 4x4 transform from a 3x3 rotation and a 3-vector (identity where omitted)."""
+    T = np.eye(4)
+    if rotation is not None:
+        T[:3, :3] = rotation
+    if translation is not None:
+        T[:3, 3] = translation
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Invert one (4, 4) or a stack (N, 4, 4) of rigid transforms without a general inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum('...ij,...j->...i', Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3) points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def poses_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """(N, 3) positions and (N, 4) quaternions (x, y, z, w) -> (N, 4, 4) poses."""
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    quat = np.asarray(quat_xyzw, dtype=float).reshape(-1, 4)
+    poses = np.tile(np.eye(4), (xyz.shape[0], 1, 1))
+    if xyz.shape[0]:
+        poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+        poses[:, :3, 3] = xyz
+    return poses
+
+
+def xyz_quat_from_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4, 4) poses -> (N, 3) positions and (N, 4) quaternions (x, y, z, w)."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    if poses.shape[0] == 0:
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    return poses[:, :3, 3].copy(), Rotation.from_matrix(poses[:, :3, :3]).as_quat()
+
+
+def rpy_transform(xyz=(0.0, 0.0, 0.0), rpy_rad=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Transform from a translation and roll/pitch/yaw (REP 103 fixed-axis x-y-z)."""
+    return make_transform(Rotation.from_euler('xyz', rpy_rad).as_matrix(), np.asarray(xyz))

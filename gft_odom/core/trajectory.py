@@ -1,0 +1,46 @@
+"""A trajectory: timestamps and poses, nothing else."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Trajectory:
+    """Poses `T_world_body` at `stamps_ns` (int64 nanoseconds), sorted by time."""
+
+    stamps_ns: np.ndarray  # (N,) int64
+    poses: np.ndarray  # (N, 4, 4) float64
+
+    def __post_init__(self) -> None:
+        self.stamps_ns = np.asarray(self.stamps_ns, dtype=np.int64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=float).reshape(-1, 4, 4)
+        if self.stamps_ns.shape[0] != self.poses.shape[0]:
+            raise ValueError(f'{self.stamps_ns.shape[0]} stamps but {self.poses.shape[0]} poses')
+
+    def __len__(self) -> int:
+        return int(self.stamps_ns.shape[0])
+
+    @property
+    def positions_xyz(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+    @property
+    def stamps_s(self) -> np.ndarray:
+        return self.stamps_ns.astype(np.float64) * 1e-9
+
+    def path_length_m(self) -> float:
+        """Total distance travelled along the positions."""
+        if len(self) < 2:
+            return 0.0
+        return float(np.linalg.norm(np.diff(self.positions_xyz, axis=0), axis=1).sum())
+
+    def transformed(self, T_new_world: np.ndarray) -> 'Trajectory':
+        """Express the trajectory in another world frame: T_new_body = T_new_world T_world_body."""
+        return Trajectory(self.stamps_ns.copy(), T_new_world @ self.poses)
+
+    def with_body_offset(self, T_body_other: np.ndarray) -> 'Trajectory':
+        """Poses of a frame rigidly attached to the body: T_world_other = T_world_body T_b_o."""
+        return Trajectory(self.stamps_ns.copy(), self.poses @ T_body_other)

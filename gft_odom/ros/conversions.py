@@ -1,0 +1,94 @@
+"""numpy / core types <-> ROS 2 messages."""
+
+from __future__ import annotations
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, PoseStamped, Quaternion, TransformStamped, Vector3
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from gft_odom.core.geometry import xyz_quat_from_poses
+from gft_odom.io.pointcloud2 import CloudBlob
+
+NS_PER_S = 1_000_000_000
+
+
+def stamp_to_ns(stamp) -> int:
+    """`builtin_interfaces/Time` -> int nanoseconds (exact, no float)."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int) -> Time:
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def blob_to_msg(blob: CloudBlob, stamp_ns: int, frame_id: str) -> PointCloud2:
+    """An rclpy PointCloud2 from the codec's output."""
+    msg = PointCloud2()
+    msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+    msg.height = blob.height
+    msg.width = blob.width
+    msg.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
+                  for f in blob.fields]
+    msg.is_bigendian = blob.is_bigendian
+    msg.point_step = blob.point_step
+    msg.row_step = blob.row_step
+    msg.is_dense = blob.is_dense
+    msg.data = bytes(blob.data)
+    return msg
+
+
+def pose_msg(T: np.ndarray) -> Pose:
+    xyz, quat = xyz_quat_from_poses(T[None])
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in xyz[0])
+    pose.orientation = Quaternion(x=float(quat[0, 0]), y=float(quat[0, 1]),
+                                  z=float(quat[0, 2]), w=float(quat[0, 3]))
+    return pose
+
+
+def odometry_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str, base_frame: str,
+                 covariance: np.ndarray, twist_linear_mps: np.ndarray | None = None,
+                 twist_angular_radps: np.ndarray | None = None) -> Odometry:
+    msg = Odometry()
+    msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=odom_frame)
+    msg.child_frame_id = base_frame
+    msg.pose.pose = pose_msg(T_odom_base)
+    msg.pose.covariance = [float(v) for v in np.asarray(covariance, dtype=float).reshape(36)]
+    if twist_linear_mps is not None:
+        msg.twist.twist.linear = Vector3(x=float(twist_linear_mps[0]),
+                                         y=float(twist_linear_mps[1]),
+                                         z=float(twist_linear_mps[2]))
+    if twist_angular_radps is not None:
+        msg.twist.twist.angular = Vector3(x=float(twist_angular_radps[0]),
+                                          y=float(twist_angular_radps[1]),
+                                          z=float(twist_angular_radps[2]))
+    return msg
+
+
+def pose_stamped_msg(T: np.ndarray, stamp_ns: int, frame_id: str) -> PoseStamped:
+    msg = PoseStamped()
+    msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+    msg.pose = pose_msg(T)
+    return msg
+
+
+def transform_msg(T_parent_child: np.ndarray, stamp_ns: int, parent: str,
+                  child: str) -> TransformStamped:
+    msg = TransformStamped()
+    msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=parent)
+    msg.child_frame_id = child
+    pose = pose_msg(T_parent_child)
+    msg.transform.translation = Vector3(x=pose.position.x, y=pose.position.y, z=pose.position.z)
+    msg.transform.rotation = pose.orientation
+    return msg
+
+
+def odometry_to_pose(msg: Odometry) -> np.ndarray:
+    """The 4x4 pose in an Odometry message."""
+    from gft_odom.core.geometry import poses_from_xyz_quat
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return poses_from_xyz_quat([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])[0]

@@ -1,0 +1,1 @@
+"""User-facing front ends: the `gft-odom` CLI, progress bars, tables, figures."""

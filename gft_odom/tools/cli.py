@@ -1,0 +1,60 @@
+"""`gft-odom`: one command, one sub-command per task.
+
+Each sub-command lives in its own module `gft_odom.tools.cmd_<name>` exposing
+`add_parser(subparsers)` (returns the parser) and `run(args) -> int`. Only this module turns
+package errors into exit codes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from gft_odom.errors import GftOdomError
+
+SUBCOMMAND_MODULES = (
+    'simulate',
+    'spectrum',
+    'replay',
+)
+
+log = logging.getLogger('gft_odom')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='gft-odom',
+        description='Graph-frequency filtered LiDAR odometry for orchards.')
+    parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+    for name in SUBCOMMAND_MODULES:
+        try:
+            module = importlib.import_module(f'gft_odom.tools.cmd_{name}')
+        except ModuleNotFoundError as exc:
+            if exc.name != f'gft_odom.tools.cmd_{name}':
+                raise
+            continue
+        p = module.add_parser(sub)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format='%(levelname)s %(name)s: %(message)s')
+    try:
+        return int(args._run(args) or 0)
+    except GftOdomError as exc:
+        log.error('%s', exc)
+        return 1
+    except KeyboardInterrupt:
+        log.error('interrupted')
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())
