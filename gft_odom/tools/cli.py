@@ -18,6 +18,8 @@ SUBCOMMAND_MODULES = (
     'simulate',
     'spectrum',
     'replay',
+    'demo',
+    'config',
 )
 
 log = logging.getLogger('gft_odom')

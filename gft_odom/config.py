@@ -1,0 +1,166 @@
+"""One source of truth for every parameter default.
+
+Each component owns a frozen dataclass of its parameters (`SpectralConfig`,
+`RegistrationConfig`, ...); `GftOdomConfig` groups them into the sections that the ROS params
+files (`config/*.yaml`, `/**: ros__parameters: <section>: <key>`) and the node's parameter names
+(`<section>.<key>`) use. Nothing here reads YAML: `gft_odom.io.params_file` does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+from gft_odom.core.registration import RegistrationConfig
+from gft_odom.core.spectral.filter import SpectralConfig
+from gft_odom.errors import ConfigError
+from gft_odom.io.ground_truth import GroundTruthConfig
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """The per-scan loop: range crop, then the spectral filter (or not), then registration."""
+
+    # Off gives the unfiltered baseline with the same registration, for fair comparisons.
+    use_spectral_filter: bool = True
+
+    # The Jackal's own body and the operator walking next to it return points inside ~0.5 m.
+    min_range_m: float = 0.5
+    # VLP-16 returns beyond ~60 m in an orchard are sparse canopy hits that only add noise.
+    max_range_m: float = 60.0
+    # A VLP-16 sweep has ~29 k points; a bigger cloud (another sensor, a driver glitch) is
+    # thinned by a regular stride to this many so one scan cannot stall the node for seconds.
+    max_points_per_scan: int = 120000
+
+    def validate(self) -> None:
+        if not (self.min_range_m >= 0.0 and math.isfinite(self.min_range_m)):
+            raise ConfigError(f'min_range_m must be >= 0, got {self.min_range_m}')
+        if not self.max_range_m > self.min_range_m:
+            raise ConfigError(
+                f'max_range_m ({self.max_range_m}) must be > min_range_m ({self.min_range_m})')
+        if self.max_points_per_scan < 100:
+            raise ConfigError(f'max_points_per_scan must be >= 100, got {self.max_points_per_scan}')
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """ROS-facing settings of `filter_odom_node` (frames, extrinsic, publishing, lag policy)."""
+
+    odom_frame: str = 'odom'
+    base_frame: str = 'base_link'
+    # Pose of the LiDAR in base_link (Jackal with the VLP-16 on its top plate, REP 103 axes).
+    base_to_sensor_xyz_m: tuple[float, ...] = (0.04, 0.0, 0.38)
+    base_to_sensor_rpy_rad: tuple[float, ...] = (0.0, 0.0, 0.0)
+    publish_tf: bool = True
+    publish_filtered_points: bool = True
+    # Bounded so a long run does not grow memory without limit.
+    path_max_length: int = 5000
+    # A scan older than this when its turn comes (processing lagged) is dropped and counted.
+    max_scan_age_s: float = 0.5
+
+    def validate(self) -> None:
+        for name in ('odom_frame', 'base_frame'):
+            value = getattr(self, name)
+            if not value or value.startswith('/'):
+                raise ConfigError(f'{name} must be a non-empty frame id without a leading "/", '
+                                  f'got {value!r}')
+        if self.odom_frame == self.base_frame:
+            raise ConfigError('odom_frame and base_frame must differ')
+        for name in ('base_to_sensor_xyz_m', 'base_to_sensor_rpy_rad'):
+            value = getattr(self, name)
+            if len(value) != 3 or not all(math.isfinite(v) for v in value):
+                raise ConfigError(f'{name} must be 3 finite numbers, got {list(value)}')
+        if self.path_max_length < 1:
+            raise ConfigError(f'path_max_length must be >= 1, got {self.path_max_length}')
+        if not self.max_scan_age_s > 0.0:
+            raise ConfigError(f'max_scan_age_s must be > 0, got {self.max_scan_age_s}')
+
+
+@dataclass(frozen=True)
+class GftOdomConfig:
+    """All parameters, grouped by section as in `config/*.yaml`."""
+
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    spectral: SpectralConfig = field(default_factory=SpectralConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    node: NodeConfig = field(default_factory=NodeConfig)
+    ground_truth: GroundTruthConfig = field(default_factory=GroundTruthConfig)
+
+    def validate(self) -> None:
+        for section in dataclasses.fields(self):
+            try:
+                getattr(self, section.name).validate()
+            except ConfigError as exc:
+                raise ConfigError(f'{section.name}: {exc}') from None
+
+
+def _field_types(cls) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def flatten(config: GftOdomConfig) -> dict[str, Any]:
+    """`{'spectral.tau_m': 0.5, ...}`: the node's parameter names and their values."""
+    flat: dict[str, Any] = {}
+    for section in dataclasses.fields(config):
+        values = getattr(config, section.name)
+        for f in dataclasses.fields(values):
+            flat[f'{section.name}.{f.name}'] = getattr(values, f.name)
+    return flat
+
+
+def parameter_types() -> dict[str, Any]:
+    """Type of every flattened parameter, from the dataclass annotations."""
+    types: dict[str, Any] = {}
+    for section, section_type in _field_types(GftOdomConfig).items():
+        for name, t in _field_types(section_type).items():
+            types[f'{section}.{name}'] = t
+    return types
+
+
+def coerce_value(key: str, value: Any, expected: Any) -> Any:
+    """Check `value` against the annotated type; ints are accepted for floats offline."""
+    origin = typing.get_origin(expected)
+    if origin is tuple:
+        item_type = typing.get_args(expected)[0]
+        if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
+            raise ConfigError(f'{key}: expected a list of {item_type.__name__}, got {value!r}')
+        return tuple(coerce_value(key, v, item_type) for v in value)
+    if expected is bool:
+        if isinstance(value, bool):
+            return value
+    elif expected is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif expected is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif expected is str:
+        if isinstance(value, str):
+            return value
+    raise ConfigError(f'{key}: expected {getattr(expected, "__name__", expected)}, '
+                      f'got {value!r} ({type(value).__name__})')
+
+
+def with_values(config: GftOdomConfig, flat: dict[str, Any]) -> GftOdomConfig:
+    """A copy of `config` with the flattened `flat` values set, type-checked and validated."""
+    types = parameter_types()
+    per_section: dict[str, dict[str, Any]] = {}
+    for key, value in flat.items():
+        if key not in types:
+            close = difflib.get_close_matches(key, list(types), n=3)
+            hint = f' (did you mean {", ".join(close)}?)' if close else ''
+            raise ConfigError(f'unknown parameter {key!r}{hint}')
+        section, name = key.split('.', 1)
+        per_section.setdefault(section, {})[name] = coerce_value(key, value, types[key])
+    sections = {
+        name: dataclasses.replace(getattr(config, name), **values)
+        for name, values in per_section.items()
+    }
+    new = dataclasses.replace(config, **sections)
+    new.validate()
+    return new

@@ -1,0 +1,224 @@
+"""`filter_odom_node`: VLP-16 PointCloud2 in, graph-frequency filtered odometry out.
+
+Subscribes `points` (remap it to `/velodyne_points`) with sensor-data QoS; publishes
+`~/filtered_points`, `~/odometry` (odom -> base_link, REP 105) and `~/path`. Parameters are
+declared from the `GftOdomConfig` dataclasses, so their defaults live in one place. Bad input is
+logged (rate-limited) and skipped: the node keeps running.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+
+import numpy as np
+import rclpy
+from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+
+from gft_odom.config import GftOdomConfig, flatten, with_values
+from gft_odom.errors import GftOdomError
+from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
+from gft_odom.pipeline import FrameResult, OdometryPipeline
+from gft_odom.ros.conversions import (blob_to_msg, odometry_msg, pose_stamped_msg,
+                                      transform_msg)
+
+NODE_NAME = 'filter_odom_node'
+# Sections whose values are only read when the pipeline starts (a change needs a restart).
+STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame',
+                         'node.base_to_sensor', 'node.publish_tf', 'ground_truth.')
+WARN_PERIOD_S = 5.0
+SUMMARY_PERIOD_S = 10.0
+
+
+def _ros_value(value):
+    """Dataclass value -> a value rclpy can declare (tuples become lists)."""
+    return list(value) if isinstance(value, tuple) else value
+
+
+class FilterOdomNode(Node):
+    """Runs `OdometryPipeline` on every incoming scan and publishes its results."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        for name, value in flatten(GftOdomConfig()).items():
+            self.declare_parameter(name, _ros_value(value),
+                                   ParameterDescriptor(description=f'see gft_odom.config ({name})'))
+        # Raises ConfigError with the reason when the params file holds an invalid value.
+        self.config = with_values(GftOdomConfig(), {
+            name: self.get_parameter(name).value for name in flatten(GftOdomConfig())})
+        self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.counters = collections.Counter()
+        self.latencies_s: collections.deque[float] = collections.deque(maxlen=600)
+        self.path = Path()
+        self.path_poses: collections.deque = collections.deque(
+            maxlen=self.config.node.path_max_length)
+        self.last_stamp_ns: int | None = None
+        self.last_frame_id: str | None = None
+
+        self.cloud_pub = self.create_publisher(PointCloud2, '~/filtered_points',
+                                               qos_profile_sensor_data)
+        self.odom_pub = self.create_publisher(Odometry, '~/odometry', QoSProfile(depth=50))
+        self.path_pub = self.create_publisher(Path, '~/path', QoSProfile(depth=5))
+        self.tf_broadcaster = self._make_tf_broadcaster()
+        self.create_subscription(PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data)
+        self.create_timer(SUMMARY_PERIOD_S, self._log_summary)
+        self.get_logger().info(
+            f'ready: filter {"on" if self.pipeline.use_filter else "off"} '
+            f'(n_bands={self.config.spectral.n_bands}, band_mask='
+            f'{list(self.config.spectral.band_mask)}), registration mode '
+            f'{self.config.registration.mode}')
+
+    def _make_tf_broadcaster(self):
+        if not self.config.node.publish_tf:
+            return None
+        try:
+            from tf2_ros import TransformBroadcaster
+        except ImportError:
+            self.get_logger().warning('tf2_ros cannot be imported: the odom -> base_link '
+                                      'transform is not published on /tf (odometry still is)')
+            return None
+        return TransformBroadcaster(self)
+
+    # -- parameters ------------------------------------------------------------------------
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        changes = {p.name: p.value for p in params if p.name in flatten(self.config)}
+        fixed = sorted(n for n in changes if n.startswith(STARTUP_ONLY_PREFIXES)
+                       and changes[n] != _ros_value(flatten(self.config)[n]))
+        if fixed:
+            return SetParametersResult(
+                successful=False,
+                reason=f'{", ".join(fixed)} can only be set at start-up; restart the node')
+        try:
+            new_config = with_values(self.config, changes)
+        except GftOdomError as exc:
+            self.get_logger().warning(f'parameter change refused: {exc}')
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.config = new_config
+        self.pipeline.reconfigure(new_config)
+        self.path_poses = collections.deque(self.path_poses, maxlen=new_config.node.path_max_length)
+        return SetParametersResult(successful=True)
+
+    # -- per scan --------------------------------------------------------------------------
+
+    def _warn(self, kind: str, text: str) -> None:
+        self.counters[kind] += 1
+        self.get_logger().warning(f'{text} ({kind} so far: {self.counters[kind]})',
+                                  throttle_duration_sec=WARN_PERIOD_S)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        t0 = time.perf_counter()
+        try:
+            scan = decode_scan(msg)
+        except GftOdomError as exc:
+            self._warn('malformed', f'skipping malformed PointCloud2: {exc}')
+            return
+        except Exception as exc:  # a hostile message must never take the node down
+            self._warn('malformed', f'skipping PointCloud2 that failed to decode: {exc!r}')
+            return
+        if not self._accept(scan):
+            return
+        t_decoded = time.perf_counter()
+        try:
+            result = self.pipeline.register_frame(scan)
+        except GftOdomError as exc:
+            self._warn('failed', f'scan at {scan.stamp_ns} ns not processed: {exc}')
+            return
+        self._publish(result, msg.header)
+        latency_s = time.perf_counter() - t0
+        self.latencies_s.append(latency_s)
+        self.counters['processed'] += 1
+        if result.fell_back:
+            self._warn('fallback', f'registration fell back to the motion prediction '
+                       f'({result.status}, {result.n_points_kept} points kept)')
+        self.get_logger().debug(
+            f'scan {scan.stamp_ns}: decode {1e3 * (t_decoded - t0):.1f} ms, '
+            + ', '.join(f'{k} {1e3 * v:.1f} ms' for k, v in result.timings_s.items()))
+
+    def _accept(self, scan) -> bool:
+        """Drop scans that would corrupt the odometry or that arrive too late to matter."""
+        if len(scan) == 0:
+            self._warn('empty', f'skipping empty scan at {scan.stamp_ns} ns')
+            return False
+        if self.last_stamp_ns is not None and scan.stamp_ns <= self.last_stamp_ns:
+            self._warn('out_of_order', f'skipping scan stamped {scan.stamp_ns} ns, not after '
+                       f'the previous one ({self.last_stamp_ns} ns)')
+            return False
+        now_ns = self.get_clock().now().nanoseconds
+        age_s = (now_ns - scan.stamp_ns) * 1e-9
+        if now_ns > 0 and age_s > self.config.node.max_scan_age_s:
+            self._warn('stale', f'dropping scan {age_s:.2f} s old (processing lags; '
+                       f'max_scan_age_s={self.config.node.max_scan_age_s})')
+            return False
+        if self.last_frame_id is not None and scan.frame_id != self.last_frame_id:
+            self._warn('frame_changed', f'scan frame_id changed from {self.last_frame_id!r} to '
+                       f'{scan.frame_id!r}; using it as the same sensor')
+        self.last_frame_id = scan.frame_id
+        self.last_stamp_ns = scan.stamp_ns
+        return True
+
+    def _publish(self, result: FrameResult, header) -> None:
+        node_cfg = self.config.node
+        stamp_ns = result.stamp_ns
+        odom = odometry_msg(result.T_odom_base, stamp_ns, node_cfg.odom_frame,
+                            node_cfg.base_frame, result.covariance)
+        self.odom_pub.publish(odom)
+        self.path_poses.append(pose_stamped_msg(result.T_odom_base, stamp_ns,
+                                                node_cfg.odom_frame))
+        self.path.header.stamp = odom.header.stamp
+        self.path.header.frame_id = node_cfg.odom_frame
+        self.path.poses = list(self.path_poses)
+        self.path_pub.publish(self.path)
+        if self.tf_broadcaster is not None:
+            self.tf_broadcaster.sendTransform(transform_msg(
+                result.T_odom_base, stamp_ns, node_cfg.odom_frame, node_cfg.base_frame))
+        if node_cfg.publish_filtered_points and self.cloud_pub.get_subscription_count() > 0:
+            scan = result.filtered
+            columns = {'x': scan.points_xyz[:, 0].astype(np.float32),
+                       'y': scan.points_xyz[:, 1].astype(np.float32),
+                       'z': scan.points_xyz[:, 2].astype(np.float32),
+                       'intensity': (scan.intensity if scan.intensity is not None
+                                     else np.zeros(len(scan), np.float32)).astype(np.float32)}
+            if result.nu is not None:
+                columns['frequency'] = result.nu.astype(np.float32)
+                columns['band'] = result.band.astype(np.uint8)
+            self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), stamp_ns, header.frame_id))
+
+    def _log_summary(self) -> None:
+        if not self.latencies_s:
+            return
+        lat_ms = 1e3 * np.asarray(self.latencies_s)
+        counts = ', '.join(f'{k}={v}' for k, v in sorted(self.counters.items()))
+        self.get_logger().info(f'latency median {np.median(lat_ms):.1f} ms, p95 '
+                               f'{np.percentile(lat_ms, 95):.1f} ms over the last '
+                               f'{lat_ms.size} scans; {counts}')
+
+
+def main(args=None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = FilterOdomNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (GftOdomError, ParameterException) as exc:
+        # Only reachable at start-up (invalid params file): nothing to keep running.
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
+        raise SystemExit(2) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

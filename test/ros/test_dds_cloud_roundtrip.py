@@ -1,0 +1,62 @@
+"""A PointCloud2 built by the codec crosses DDS between two processes and decodes the same."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.ros]
+
+
+def _load_publisher_module():
+    path = Path(__file__).with_name('cloud_publisher.py')
+    spec = importlib.util.spec_from_file_location('cloud_publisher', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module, path
+
+
+def test_cloud_crosses_dds_between_processes(ros_env):
+    import rclpy
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2
+
+    from gft_odom.io.pointcloud2 import decode_scan
+
+    publisher_module, publisher_path = _load_publisher_module()
+    seed, n = 7, 30_000
+    expected = publisher_module.make_columns(seed, n)
+    proc = subprocess.Popen([sys.executable, str(publisher_path), str(seed), str(n)],
+                            env=ros_env)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('cloud_listener', context=context)
+    received: list[PointCloud2] = []
+    node.create_subscription(PointCloud2, 'points', received.append, qos_profile_sensor_data)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + 30.0
+        while not received and time.monotonic() < deadline and proc.poll() is None:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        proc.terminate()
+        proc.wait(timeout=10)
+    assert received, 'no PointCloud2 arrived over DDS within 30 s'
+    scan = decode_scan(received[0])
+    assert scan.stamp_ns == 1_700_000_000_123_456_789
+    assert scan.frame_id == 'velodyne'
+    np.testing.assert_array_equal(scan.points_xyz[:, 0], expected['x'].astype(np.float64))
+    np.testing.assert_array_equal(scan.points_xyz[:, 2], expected['z'].astype(np.float64))
+    np.testing.assert_array_equal(scan.intensity, expected['intensity'])
+    np.testing.assert_array_equal(scan.ring, expected['ring'])
+    np.testing.assert_array_equal(scan.time_offset_s, expected['time'])
