@@ -1,0 +1,132 @@
+"""The per-scan loop, the one place the node and every offline tool call.
+
+`OdometryPipeline.register_frame(scan)` reads as the method: crop, graph-frequency filter,
+register, update. Frames follow REP 105: `odom` is where `base_link` was at the first scan.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gft_odom.config import GftOdomConfig
+from gft_odom.core.geometry import invert_transform, rpy_transform
+from gft_odom.core.registration import ScanRegistration
+from gft_odom.core.spectral.bands import BandMask
+from gft_odom.core.spectral.filter import SpectralFilter
+from gft_odom.core.trajectory import Trajectory
+from gft_odom.core.types import Scan
+from gft_odom.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FrameResult:
+    """What one scan produced: poses, the filtered cloud, health and per-stage timings."""
+
+    stamp_ns: int
+    T_world_sensor: np.ndarray  # world = sensor frame at the first scan
+    T_odom_base: np.ndarray  # REP 105 odom -> base_link
+    covariance: np.ndarray  # (6, 6) of the pose, inflated when registration fell back
+    status: str
+    n_points_in: int
+    n_points_kept: int
+    filtered: Scan  # the points registration used
+    nu: np.ndarray | None  # per kept point, None when the filter is off
+    band: np.ndarray | None
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def fell_back(self) -> bool:
+        return self.status.startswith('fallback')
+
+
+def base_to_sensor(config: GftOdomConfig) -> np.ndarray:
+    """T_base_sensor from the node section's extrinsic."""
+    return rpy_transform(config.node.base_to_sensor_xyz_m, config.node.base_to_sensor_rpy_rad)
+
+
+class OdometryPipeline:
+    """Spectral filter + registration with their state; one call per scan."""
+
+    def __init__(self, config: GftOdomConfig, record_trajectory: bool = True):
+        config.validate()
+        self.record_trajectory = record_trajectory
+        self.config = config
+        self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
+        self.registration = ScanRegistration.from_config(config.registration)
+        self.T_base_sensor = base_to_sensor(config)
+        self.T_sensor_base = invert_transform(self.T_base_sensor)
+        self.status_counts: Counter[str] = Counter()
+        self._stamps_ns: list[int] = []
+        self._poses: list[np.ndarray] = []
+
+    @property
+    def use_filter(self) -> bool:
+        return self.config.pipeline.use_spectral_filter
+
+    def register_frame(self, scan: Scan) -> FrameResult:
+        t0 = time.perf_counter()
+        # 1. Range crop: drop the robot's own body and far, sparse returns.
+        cropped = self._crop(scan)
+        t1 = time.perf_counter()
+        # 2. Graph-frequency band-pass: per-point band, keep the bands of the mask.
+        nu = band = None
+        kept = cropped
+        if self.use_filter and len(cropped):
+            result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask)
+            kept = cropped.select(result.keep)
+            nu, band = result.nu[result.keep], result.band[result.keep]
+        t2 = time.perf_counter()
+        # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
+        reg = self.registration.register(kept.points_xyz, scan.stamp_ns, kept.time_offset_s)
+        t3 = time.perf_counter()
+        # 4. Update: odom -> base_link, trajectory, counters.
+        T_odom_base = self.T_base_sensor @ reg.T_world_sensor @ self.T_sensor_base
+        self.status_counts[reg.status] += 1
+        if self.record_trajectory:
+            self._stamps_ns.append(int(scan.stamp_ns))
+            self._poses.append(reg.T_world_sensor)
+        return FrameResult(
+            stamp_ns=int(scan.stamp_ns), T_world_sensor=reg.T_world_sensor,
+            T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
+            n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
+            timings_s={'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
+                       'pipeline': t3 - t0})
+
+    def _crop(self, scan: Scan) -> Scan:
+        cfg = self.config.pipeline
+        r2 = np.einsum('ij,ij->i', scan.points_xyz, scan.points_xyz)
+        keep = (r2 >= cfg.min_range_m ** 2) & (r2 <= cfg.max_range_m ** 2)
+        index = np.flatnonzero(keep)
+        if index.size > cfg.max_points_per_scan:
+            stride = int(np.ceil(index.size / cfg.max_points_per_scan))
+            log.warning('scan at %d ns has %d points; keeping every %d-th (max_points_per_scan='
+                        '%d)', scan.stamp_ns, index.size, stride, cfg.max_points_per_scan)
+            index = index[::stride]
+        return scan if index.size == len(scan) else scan.select(index)
+
+    def reconfigure(self, config: GftOdomConfig) -> None:
+        """Take new spectral / crop parameters at run time; registration keeps its state."""
+        config.validate()
+        if config.registration != self.config.registration:
+            raise ConfigError('registration parameters can only change before the first scan')
+        self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
+        self.config = config
+
+    def sensor_trajectory(self) -> Trajectory:
+        """T_world_sensor of every registered scan (world = first sensor frame)."""
+        return Trajectory(np.array(self._stamps_ns, dtype=np.int64),
+                          np.array(self._poses).reshape(-1, 4, 4))
+
+    def base_trajectory(self) -> Trajectory:
+        """T_odom_base of every registered scan: what the node publishes."""
+        traj = self.sensor_trajectory()
+        return Trajectory(traj.stamps_ns, self.T_base_sensor @ traj.poses @ self.T_sensor_base)

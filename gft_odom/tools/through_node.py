@@ -1,0 +1,193 @@
+"""`gft-odom replay --through-node`: the real node in its own process, fed over DDS.
+
+Nothing here re-implements the pipeline: the colcon-installed `lib/gft_odom/filter_odom_node`
+(what `ros2 run` starts) gets the bag's scans and a `/clock` in lockstep (next scan once the
+odometry of the previous one arrived), so its trajectory is comparable to the in-process replay.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+import signal
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from gft_odom.config import GftOdomConfig
+from gft_odom.core.geometry import invert_transform
+from gft_odom.core.trajectory import Trajectory
+from gft_odom.errors import GftOdomError
+from gft_odom.io.bags import ScanBagReader
+from gft_odom.io.ground_truth import read_ground_truth
+from gft_odom.params_file import config_to_yaml
+from gft_odom.pipeline import base_to_sensor
+from gft_odom.replay import ReplayResult, is_gps_ground_truth, summarize
+
+log = logging.getLogger(__name__)
+
+NODE_NAME = 'filter_odom_node'
+
+
+class NodeProcessError(GftOdomError):
+    """The node process could not be started or stopped answering."""
+
+
+def find_node_executable(node_exe: str | None = None) -> Path:
+    """`--node-exe`, else `<prefix>/lib/gft_odom/filter_odom_node` on AMENT_PREFIX_PATH."""
+    if node_exe:
+        path = Path(node_exe)
+        if not path.is_file():
+            raise NodeProcessError(f'node executable {path} does not exist')
+        return path
+    for prefix in filter(None, os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)):
+        path = Path(prefix) / 'lib' / 'gft_odom' / NODE_NAME
+        if path.is_file():
+            return path
+    raise NodeProcessError('cannot find lib/gft_odom/filter_odom_node: colcon build the package '
+                           'and source install/setup.bash, or pass --node-exe')
+
+
+def ros_message_from_bag(raw, PointCloud2, PointField):
+    """A bag's PointCloud2 (rosbags object, ROS 1 or 2) as an rclpy message, bytes untouched."""
+    msg = PointCloud2()
+    msg.header.stamp.sec = int(raw.header.stamp.sec)
+    msg.header.stamp.nanosec = int(raw.header.stamp.nanosec)
+    msg.header.frame_id = str(raw.header.frame_id)
+    msg.height, msg.width = int(raw.height), int(raw.width)
+    msg.fields = [PointField(name=f.name, offset=int(f.offset), datatype=int(f.datatype),
+                             count=int(f.count)) for f in raw.fields]
+    msg.is_bigendian = bool(raw.is_bigendian)
+    msg.point_step, msg.row_step = int(raw.point_step), int(raw.row_step)
+    msg.data = bytes(np.asarray(raw.data, dtype=np.uint8).tobytes())
+    msg.is_dense = bool(raw.is_dense)
+    return msg
+
+
+def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
+                        gt_path: str | Path | None = None, topic: str = '/velodyne_points',
+                        max_scans: int | None = None,
+                        progress: Callable[[int, int], None] | None = None,
+                        node_exe: str | None = None, scan_timeout_s: float = 20.0,
+                        env: dict[str, str] | None = None,
+                        log_path: str | Path | None = None) -> ReplayResult:
+    """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
+    import rclpy
+    from nav_msgs.msg import Odometry, Path as PathMsg
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from gft_odom.ros.conversions import ns_to_stamp, odometry_to_pose, stamp_to_ns
+
+    exe = find_node_executable(node_exe)
+    ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
+    env = dict(os.environ if env is None else env)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env.setdefault('ROS_DOMAIN_ID', str(random.randint(100, 200)))
+    domain_id = int(env['ROS_DOMAIN_ID'])
+    work = Path(tempfile.mkdtemp(prefix='gft_odom_node_'))
+    params_path = work / 'params.yaml'
+    params_path.write_text(config_to_yaml(config))
+    node_log = Path(log_path) if log_path else work / 'node.log'
+    cmd = [str(exe), '--ros-args', '--params-file', str(params_path),
+           '-p', 'use_sim_time:=true', '-r', f'points:={topic}']
+    log.info('starting %s (ROS_DOMAIN_ID=%d)', ' '.join(cmd), domain_id)
+    with open(node_log, 'w') as log_file:
+        proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node('gft_odom_replay_feeder', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    odometry: dict[int, np.ndarray] = {}
+    kept_points: dict[int, int] = {}
+    last_path: list = []
+    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(Odometry, f'/{NODE_NAME}/odometry',
+                             lambda m: odometry.__setitem__(stamp_to_ns(m.header.stamp),
+                                                            odometry_to_pose(m)), reliable)
+    node.create_subscription(PathMsg, f'/{NODE_NAME}/path',
+                             lambda m: last_path.__setitem__(slice(None), [m]), QoSProfile(depth=5))
+    node.create_subscription(PointCloud2, f'/{NODE_NAME}/filtered_points',
+                             lambda m: kept_points.__setitem__(stamp_to_ns(m.header.stamp),
+                                                               m.width * m.height),
+                             QoSProfile(depth=10))
+    clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10))
+    cloud_pub = node.create_publisher(PointCloud2, topic, reliable)
+
+    def spin_until(done: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if proc.poll() is not None:
+                raise NodeProcessError(f'filter_odom_node exited with code {proc.returncode}; '
+                                       f'its log: {node_log}\n{node_log.read_text()[-2000:]}')
+            if time.monotonic() > deadline:
+                return False
+            executor.spin_once(timeout_sec=0.02)
+        return True
+
+    stamps, latency, points_in, statuses = [], [], [], []
+    try:
+        if not spin_until(lambda: cloud_pub.get_subscription_count() > 0
+                          and node.count_publishers(f'/{NODE_NAME}/odometry') > 0, 60.0):
+            raise NodeProcessError(f'filter_odom_node did not come up within 60 s ({node_log})')
+        with ScanBagReader(list(bag_paths), topic=topic) as reader:
+            total = len(reader) if max_scans is None else min(len(reader), max_scans)
+            for i, (stamp_ns, raw) in enumerate(reader.iter_messages()):
+                if i >= total:
+                    break
+                msg = ros_message_from_bag(raw, PointCloud2, PointField)
+                stamp_ns = stamp_to_ns(msg.header.stamp)
+                clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
+                t0 = time.perf_counter()
+                got = False
+                for _ in range(3):  # a lost best-effort sample is sent again
+                    cloud_pub.publish(msg)
+                    if spin_until(lambda: stamp_ns in odometry, scan_timeout_s / 3):
+                        got = True
+                        break
+                latency.append(time.perf_counter() - t0)
+                points_in.append(msg.width * msg.height)
+                if got:
+                    stamps.append(stamp_ns)
+                    statuses.append('ok')
+                else:
+                    log.warning('no odometry for the scan at %d ns within %.0f s (the node '
+                                'skipped it; see %s)', stamp_ns, scan_timeout_s, node_log)
+                    statuses.append('no_answer')
+                if progress is not None:
+                    progress(i + 1, total)
+            spin_until(lambda: False, 0.5)  # let the last filtered cloud / path arrive
+            skipped = getattr(reader, 'skipped', 0)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    T_base_sensor = base_to_sensor(config)
+    T_sensor_base = invert_transform(T_base_sensor)
+    base_poses = np.array([odometry[s] for s in stamps]).reshape(-1, 4, 4)
+    base = Trajectory(np.array(stamps, dtype=np.int64), base_poses)
+    sensor = Trajectory(base.stamps_ns, T_sensor_base @ base.poses @ T_base_sensor)
+    replay = ReplayResult(
+        sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
+        stage_s={'round_trip': np.asarray(latency)}, points_in=np.asarray(points_in),
+        points_kept=np.array([kept_points.get(s, 0) for s in stamps]), statuses=statuses,
+        skipped_messages=skipped, ground_truth=ground_truth,
+        ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
+    replay.metrics = summarize(replay, config)
+    replay.metrics['node_path_length'] = len(last_path[0].poses) if last_path else 0
+    replay.metrics['node_log'] = str(node_log)
+    return replay
