@@ -1,0 +1,5 @@
+"""Data in and out: PointCloud2 codec, bags (through rosbags, imported lazily), trajectories.
+
+Submodules: `pointcloud2` (codec), `bags` (ScanBagReader, read_odometry, BagWriter),
+`ground_truth` (read_ground_truth, GroundTruthConfig), `tum` (read_tum, write_tum).
+"""
