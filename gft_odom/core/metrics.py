@@ -1,0 +1,510 @@
+"""Trajectory evaluation: association, Umeyama alignment, ATE, the paper's MSE and RPE drift.
+
+Pure numpy (checked against `evo` in the tests, never imported here). Conventions:
+
+- `est` is the odometry, `ref` the ground truth; poses are `T_world_body`.
+- Alignment maps the estimate's world into the reference's world:
+  `p_ref ~ s R p_est + t`, stored as the 4x4 `T_ref_est = [[s R, t], [0, 1]]`.
+- Modes: `'se3'` (rigid, also scores orientations), `'sim3'` (rigid + scale) and `'position'`
+  (rigid, never reads orientations: GPS ground truth such as CitrusFarm's `/gps/fix/odometry`
+  carries no meaningful orientation).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gft_odom.core.geometry import invert_transform
+from gft_odom.core.trajectory import Trajectory
+from gft_odom.errors import ConfigError, GroundTruthError
+
+logger = logging.getLogger(__name__)
+
+ATE_MODES = ('se3', 'sim3', 'position')
+MATCH_METHODS = ('nearest', 'interpolate')
+DEFAULT_LENGTHS_M = (5.0, 10.0, 20.0, 50.0)
+
+# Umeyama needs a spread in two directions; below this ratio of the second to the first singular
+# value of the centred points they are treated as collinear (the rotation about the line is
+# then fixed by noise alone, not by the data).
+_COLLINEAR_RTOL = 1e-9
+_MIN_MATCHED = 3
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """Evaluation settings shared by the offline tools (replay, band search, benchmarks)."""
+
+    # 'position' by default: the CitrusFarm ground truth is a GPS antenna track, no orientation.
+    mode: str = 'position'
+    # Half a LiDAR period at 10 Hz: a ground-truth stamp further away belongs to another scan.
+    max_diff_s: float = 0.05
+    # 'interpolate' resamples a lower-rate GPS track linearly at the estimate's stamps.
+    match: str = 'nearest'
+    # With 'interpolate', no position is invented across a ground-truth gap longer than this.
+    max_gap_s: float = 1.0
+    # KITTI uses 100..800 m on cars; orchard rows are ~100 m, so shorter segments.
+    lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M
+
+    def validate(self) -> None:
+        _check_args(self.mode, self.max_diff_s, self.match, self.max_gap_s, self.lengths_m)
+
+
+def _check_args(mode: str = 'position', max_diff_s: float = 0.05, match: str = 'nearest',
+                max_gap_s: float = 1.0, lengths_m=DEFAULT_LENGTHS_M) -> None:
+    """Raise ConfigError naming the first invalid evaluation argument."""
+    if mode not in ATE_MODES:
+        raise ConfigError(f'metrics mode must be one of {ATE_MODES}, got {mode!r}')
+    if match not in MATCH_METHODS:
+        raise ConfigError(f'metrics match must be one of {MATCH_METHODS}, got {match!r}')
+    if not (math.isfinite(max_diff_s) and max_diff_s >= 0.0):
+        raise ConfigError(f'max_diff_s must be a finite number >= 0, got {max_diff_s}')
+    if not (math.isfinite(max_gap_s) and max_gap_s > 0.0):
+        raise ConfigError(f'max_gap_s must be a finite number > 0, got {max_gap_s}')
+    lengths = list(lengths_m)
+    if not lengths or not all(math.isfinite(v) and v > 0.0 for v in lengths):
+        raise ConfigError(f'lengths_m must be a non-empty list of numbers > 0, got {lengths}')
+
+
+def _check_sorted(traj: Trajectory, name: str) -> None:
+    if len(traj) > 1 and np.any(np.diff(traj.stamps_ns) < 0):
+        first = int(np.flatnonzero(np.diff(traj.stamps_ns) < 0)[0])
+        raise GroundTruthError(f'{name} trajectory stamps are not sorted in time '
+                               f'(stamp {first + 1} is earlier than stamp {first})')
+
+
+def _time_range(traj: Trajectory) -> str:
+    if len(traj) == 0:
+        return 'empty'
+    return f'{traj.stamps_s[0]:.3f}..{traj.stamps_s[-1]:.3f} s ({len(traj)} poses)'
+
+
+# --- association -----------------------------------------------------------------------------
+
+def associate(est: Trajectory, ref: Trajectory,
+              max_diff_s: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Pair each estimate stamp with the nearest reference stamp within `max_diff_s`.
+
+    Each reference pose is used at most once (the estimate closest in time keeps it, the
+    earlier one on a tie), so a slow reference is not counted several times. Returns two int
+    arrays (est_idx, ref_idx), increasing, of equal length. Integer nanoseconds throughout, so
+    no float rounding decides a match.
+    """
+    _check_args(max_diff_s=max_diff_s)
+    _check_sorted(est, 'estimated')
+    _check_sorted(ref, 'reference')
+    empty = np.zeros(0, dtype=np.int64)
+    if len(est) == 0 or len(ref) == 0:
+        return empty, empty.copy()
+    max_diff_ns = int(round(max_diff_s * 1e9))
+    s_est, s_ref = est.stamps_ns, ref.stamps_ns
+    upper = np.searchsorted(s_ref, s_est, side='left')
+    right = np.minimum(upper, len(ref) - 1)
+    left = np.maximum(upper - 1, 0)
+    dt_right = np.abs(s_ref[right] - s_est)
+    dt_left = np.abs(s_est - s_ref[left])
+    nearest = np.where(dt_right < dt_left, right, left)
+    dt = np.minimum(dt_right, dt_left)
+    within = dt <= max_diff_ns
+    est_idx = np.flatnonzero(within).astype(np.int64)
+    ref_idx = nearest[within].astype(np.int64)
+    dt = dt[within]
+    # One estimate per reference pose: sort by (ref, dt, est) and keep the first of each ref.
+    order = np.lexsort((est_idx, dt, ref_idx))
+    _, first = np.unique(ref_idx[order], return_index=True)
+    keep = np.sort(order[first])
+    return est_idx[keep], ref_idx[keep]
+
+
+def interpolate_positions(ref: Trajectory, stamps_ns: np.ndarray,
+                          max_gap_s: float = 1.0) -> np.ndarray:
+    """Reference positions linearly interpolated at `stamps_ns`, (M, 3).
+
+    For a ground truth at another rate than the scans (GPS at 1-5 Hz). Rows are NaN outside the
+    reference's time span and inside gaps longer than `max_gap_s` (a GPS dropout is not
+    bridged by a straight line). Orientations are not interpolated: this serves the
+    position-only metrics.
+    """
+    _check_args(max_gap_s=max_gap_s)
+    _check_sorted(ref, 'reference')
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    out = np.full((stamps_ns.shape[0], 3), np.nan)
+    if len(ref) == 0 or stamps_ns.shape[0] == 0:
+        return out
+    # Seconds relative to the first reference stamp keep float64 precision at the ns level.
+    t_ref = (ref.stamps_ns - ref.stamps_ns[0]).astype(np.float64) * 1e-9
+    t_query = (stamps_ns - ref.stamps_ns[0]).astype(np.float64) * 1e-9
+    upper = np.searchsorted(ref.stamps_ns, stamps_ns, side='left')
+    exact = (upper < len(ref)) & (ref.stamps_ns[np.minimum(upper, len(ref) - 1)] == stamps_ns)
+    inside = (upper > 0) & (upper < len(ref))
+    gap_s = np.full(stamps_ns.shape[0], np.inf)
+    gap_s[inside] = t_ref[upper[inside]] - t_ref[upper[inside] - 1]
+    valid = exact | (inside & (gap_s <= max_gap_s))
+    positions = ref.positions_xyz
+    for axis in range(3):  # three axes, not a loop over points
+        out[valid, axis] = np.interp(t_query[valid], t_ref, positions[:, axis])
+    return out
+
+
+@dataclass
+class _Matched:
+    """Poses of est and ref at matched instants (ref rotations only when they were read)."""
+
+    est_idx: np.ndarray
+    p_est: np.ndarray
+    p_ref: np.ndarray
+    poses_est: np.ndarray
+    poses_ref: np.ndarray | None
+
+
+def _match(est: Trajectory, ref: Trajectory, max_diff_s: float, match: str, max_gap_s: float,
+           need_orientation: bool) -> _Matched:
+    _check_args(max_diff_s=max_diff_s, match=match, max_gap_s=max_gap_s)
+    if match == 'nearest':
+        est_idx, ref_idx = associate(est, ref, max_diff_s)
+        p_ref = ref.positions_xyz[ref_idx]
+        poses_ref = ref.poses[ref_idx] if need_orientation else None
+        how = f'within {max_diff_s} s'
+    else:
+        if need_orientation:
+            raise ConfigError("match='interpolate' gives positions only; orientation metrics "
+                              "(mode='se3', use_orientation=True) need match='nearest'")
+        _check_sorted(est, 'estimated')
+        p_all = interpolate_positions(ref, est.stamps_ns, max_gap_s)
+        est_idx = np.flatnonzero(np.isfinite(p_all).all(axis=1))
+        p_ref = p_all[est_idx]
+        poses_ref = None
+        how = f'by interpolation (gaps <= {max_gap_s} s)'
+    if est_idx.shape[0] < _MIN_MATCHED:
+        raise GroundTruthError(
+            f'only {est_idx.shape[0]} estimated stamps overlap the reference {how}; need at '
+            f'least {_MIN_MATCHED}. Estimate: {_time_range(est)}; reference: {_time_range(ref)}')
+    p_est = est.positions_xyz[est_idx]
+    for name, p in (('estimated', p_est), ('reference', p_ref)):
+        if not np.isfinite(p).all():
+            raise GroundTruthError(f'{name} trajectory has non-finite positions at matched stamps')
+    return _Matched(est_idx, p_est, p_ref, est.poses[est_idx], poses_ref)
+
+
+# --- alignment -------------------------------------------------------------------------------
+
+def umeyama_alignment(src: np.ndarray, dst: np.ndarray,
+                      with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares (R, t, s) minimising sum |dst - (s R src + t)|^2 (Umeyama 1991).
+
+    R is a proper rotation even when a reflection would fit better (the sign of the smallest
+    singular direction is flipped), so planar trajectories align correctly. s is 1.0 unless
+    `with_scale`. Fewer than 3 points, non-finite values or collinear point sets raise
+    GroundTruthError: there the rotation is not determined by the data.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape:
+        raise GroundTruthError(f'alignment needs two (N, 3) point sets of equal shape, got '
+                               f'{src.shape} and {dst.shape}')
+    n = src.shape[0]
+    if n < _MIN_MATCHED:
+        raise GroundTruthError(f'alignment needs at least {_MIN_MATCHED} point pairs, got {n}')
+    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+        raise GroundTruthError('alignment got non-finite (NaN/Inf) points')
+    mean_src = src.mean(axis=0)
+    mean_dst = dst.mean(axis=0)
+    centred_src = src - mean_src
+    centred_dst = dst - mean_dst
+    for name, centred in (('estimated', centred_src), ('reference', centred_dst)):
+        spread = np.linalg.svd(centred, compute_uv=False)
+        if not spread[1] > _COLLINEAR_RTOL * spread[0]:
+            raise GroundTruthError(
+                f'alignment is degenerate: the {name} positions are collinear or identical '
+                f'(spread singular values {spread[0]:.3g}, {spread[1]:.3g} m); the rotation '
+                'about the line is not determined')
+    covariance = centred_dst.T @ centred_src / n
+    u, d, vt = np.linalg.svd(covariance)
+    if not d[1] > _COLLINEAR_RTOL**2 * d[0]:
+        raise GroundTruthError('alignment is degenerate: the cross-covariance of the positions '
+                               f'has rank < 2 (singular values {d})')
+    signs = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
+        signs[2] = -1.0  # best proper rotation instead of a reflection
+    rotation = (u * signs) @ vt
+    scale = 1.0
+    if with_scale:
+        variance_src = float((centred_src**2).sum()) / n
+        scale = float((d * signs).sum()) / variance_src
+    translation = mean_dst - scale * rotation @ mean_src
+    return rotation, translation, scale
+
+
+def _similarity(rotation: np.ndarray, translation: np.ndarray, scale: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = scale * rotation
+    T[:3, 3] = translation
+    return T
+
+
+def _rotation_angles_rad(rotations: np.ndarray) -> np.ndarray:
+    """Angles of a stack of rotation matrices, accurate near 0 (atan2, not arccos)."""
+    trace = np.trace(rotations, axis1=-2, axis2=-1)
+    skew = np.stack([rotations[..., 2, 1] - rotations[..., 1, 2],
+                     rotations[..., 0, 2] - rotations[..., 2, 0],
+                     rotations[..., 1, 0] - rotations[..., 0, 1]], axis=-1)
+    return np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (trace - 1.0))
+
+
+# --- absolute trajectory error ---------------------------------------------------------------
+
+@dataclass
+class AteResult:
+    """Absolute trajectory error after alignment (position errors in metres)."""
+
+    rmse_m: float
+    mean_m: float
+    median_m: float
+    max_m: float
+    std_m: float
+    n: int
+    mode: str
+    scale: float
+    rotation_rmse_deg: float  # nan unless mode == 'se3'
+    T_ref_est: np.ndarray  # (4, 4): p_ref ~ T_ref_est applied to p_est; [:3,:3] is s R
+    # Per matched pose, and which est poses were matched (for plots); kept out of the repr.
+    errors_m: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    est_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), repr=False)
+
+
+def _ate_from_matched(m: _Matched, mode: str) -> AteResult:
+    rotation, translation, scale = umeyama_alignment(m.p_est, m.p_ref, with_scale=mode == 'sim3')
+    p_aligned = scale * m.p_est @ rotation.T + translation
+    errors = np.linalg.norm(p_aligned - m.p_ref, axis=1)
+    rotation_rmse_deg = math.nan
+    if mode == 'se3':
+        # Error rotation R_ref^T (R_align R_est), as evo's APE on the aligned trajectory.
+        r_err = np.swapaxes(m.poses_ref[:, :3, :3], -1, -2) @ (rotation @ m.poses_est[:, :3, :3])
+        angles_deg = np.degrees(_rotation_angles_rad(r_err))
+        rotation_rmse_deg = float(np.sqrt(np.mean(angles_deg**2)))
+    return AteResult(
+        rmse_m=float(np.sqrt(np.mean(errors**2))), mean_m=float(errors.mean()),
+        median_m=float(np.median(errors)), max_m=float(errors.max()), std_m=float(errors.std()),
+        n=int(errors.shape[0]), mode=mode, scale=float(scale),
+        rotation_rmse_deg=rotation_rmse_deg, T_ref_est=_similarity(rotation, translation, scale),
+        errors_m=errors, est_idx=m.est_idx)
+
+
+def ate(est: Trajectory, ref: Trajectory, mode: str = 'se3', max_diff_s: float = 0.05,
+        match: str = 'nearest', max_gap_s: float = 1.0) -> AteResult:
+    """Absolute trajectory error of `est` against `ref` after Umeyama alignment.
+
+    The alignment uses the matched positions only (rigid for 'se3' and 'position', with scale
+    for 'sim3'); the error is the position distance after alignment. 'se3' also reports the
+    RMSE of the orientation error angle; 'position' never reads orientations.
+    """
+    _check_args(mode, max_diff_s, match, max_gap_s)
+    m = _match(est, ref, max_diff_s, match, max_gap_s, need_orientation=mode == 'se3')
+    return _ate_from_matched(m, mode)
+
+
+def paper_mse(est: Trajectory, ref: Trajectory, max_diff_s: float = 0.05,
+              match: str = 'nearest', max_gap_s: float = 1.0) -> float:
+    """The paper's "MSE": mean squared position error in m^2 after a rigid alignment.
+
+    Alignment: rigid Umeyama (rotation + translation, no scale) on the matched positions, as
+    `ate(mode='position')`; so `paper_mse == ate_rmse_m ** 2`. The paper's figures (4.37 m,
+    1.22 m) are quoted in metres, so compare them with `ate_rmse_m`, i.e. sqrt of this value.
+    """
+    result = ate(est, ref, mode='position', max_diff_s=max_diff_s, match=match,
+                 max_gap_s=max_gap_s)
+    return float(np.mean(result.errors_m**2))
+
+
+# --- relative error over distance (drift) ----------------------------------------------------
+
+@dataclass
+class RpeSegments:
+    """Every segment of one length: start/end indices into `est`, errors per segment."""
+
+    length_m: float
+    first_idx: np.ndarray  # (K,) int, into est
+    last_idx: np.ndarray  # (K,) int, into est
+    error_pct: np.ndarray  # (K,) translation error / length * 100
+    rot_error_deg_per_m: np.ndarray  # (K,) nan in the position-only variant
+
+
+def _segment_pairs(p_ref: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """For every start i, the first j whose reference path distance from i exceeds length_m."""
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p_ref, axis=0), axis=1))])
+    last = np.searchsorted(travelled, travelled + length_m, side='right')
+    first = np.flatnonzero(last < travelled.shape[0])
+    return first, last[first]
+
+
+def _segments_from_matched(m: _Matched, length_m: float, use_orientation: bool,
+                           p_est_aligned: np.ndarray | None) -> RpeSegments:
+    first, last = _segment_pairs(m.p_ref, length_m)
+    if use_orientation:
+        # KITTI: E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j), error |t(E)| and angle(E) per metre.
+        rel_ref = invert_transform(m.poses_ref[first]) @ m.poses_ref[last]
+        rel_est = invert_transform(m.poses_est[first]) @ m.poses_est[last]
+        error_pose = invert_transform(rel_ref) @ rel_est
+        error_m = np.linalg.norm(error_pose[:, :3, 3], axis=1)
+        rot_deg_per_m = np.degrees(_rotation_angles_rad(error_pose[:, :3, :3])) / length_m
+    else:
+        # Displacements in the reference world after one rigid alignment of est.
+        d_est = p_est_aligned[last] - p_est_aligned[first]
+        d_ref = m.p_ref[last] - m.p_ref[first]
+        error_m = np.linalg.norm(d_est - d_ref, axis=1)
+        rot_deg_per_m = np.full(first.shape[0], np.nan)
+    return RpeSegments(float(length_m), m.est_idx[first], m.est_idx[last],
+                       error_m / length_m * 100.0, rot_deg_per_m)
+
+
+def _aligned_positions(m: _Matched) -> np.ndarray:
+    rotation, translation, _ = umeyama_alignment(m.p_est, m.p_ref, with_scale=False)
+    return m.p_est @ rotation.T + translation
+
+
+def rpe_segments(est: Trajectory, ref: Trajectory, length_m: float,
+                 use_orientation: bool = False, max_diff_s: float = 0.05,
+                 match: str = 'nearest', max_gap_s: float = 1.0) -> RpeSegments:
+    """All segments of one length with their errors (see `rpe_drift` for the definitions)."""
+    _check_args(max_diff_s=max_diff_s, match=match, max_gap_s=max_gap_s, lengths_m=(length_m,))
+    m = _match(est, ref, max_diff_s, match, max_gap_s, need_orientation=use_orientation)
+    aligned = None if use_orientation else _aligned_positions(m)
+    return _segments_from_matched(m, length_m, use_orientation, aligned)
+
+
+def _drift_from_matched(m: _Matched, lengths_m, use_orientation: bool) -> dict:
+    aligned = None if use_orientation else _aligned_positions(m)
+    segments = [_segments_from_matched(m, float(length), use_orientation, aligned)
+                for length in lengths_m]
+    errors = np.concatenate([s.error_pct for s in segments])
+    rot = np.concatenate([s.rot_error_deg_per_m for s in segments])
+    return {
+        'lengths_m': [s.length_m for s in segments],
+        'drift_pct_per_length': [float(s.error_pct.mean()) if s.error_pct.size else math.nan
+                                 for s in segments],
+        'count_per_length': [int(s.error_pct.size) for s in segments],
+        'drift_pct': float(errors.mean()) if errors.size else math.nan,
+        'rot_drift_deg_per_m': float(rot.mean()) if use_orientation and rot.size else math.nan,
+        'use_orientation': bool(use_orientation),
+    }
+
+
+def rpe_drift(est: Trajectory, ref: Trajectory, lengths_m=DEFAULT_LENGTHS_M,
+              use_orientation: bool = False, max_diff_s: float = 0.05, match: str = 'nearest',
+              max_gap_s: float = 1.0) -> dict:
+    """KITTI-style drift: relative translation error over travelled distance, in %.
+
+    Segments: for every matched start frame i (step 1) and each length L, j is the first frame
+    whose path distance along the reference from i exceeds L. Segment error, as % of L:
+
+    - `use_orientation=False` (GPS ground truth): est is aligned to ref once (rigid Umeyama on
+      positions), then `|(p_est[j] - p_est[i]) - (p_ref[j] - p_ref[i])| / L * 100`: the error of
+      the displacement vector in the reference world. Reads no orientation; a heading error
+      early in the run shows up as drift later, as it should for odometry.
+    - `use_orientation=True` (full KITTI): `E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`, error
+      `|t(E)| / L * 100`, and `angle(E) / L` in deg/m; invariant to any rigid motion of est,
+      so no alignment.
+
+    Returns a JSON-friendly dict: `lengths_m`, `drift_pct_per_length` (nan where a length
+    exceeds the trajectory), `count_per_length` (0 there), `drift_pct` (mean over all segments
+    of all lengths, pooled as the KITTI devkit does), `rot_drift_deg_per_m` (nan unless
+    orientations are used), `use_orientation`.
+    """
+    _check_args(max_diff_s=max_diff_s, match=match, max_gap_s=max_gap_s, lengths_m=lengths_m)
+    m = _match(est, ref, max_diff_s, match, max_gap_s, need_orientation=use_orientation)
+    return _drift_from_matched(m, lengths_m, use_orientation)
+
+
+# --- everything at once ----------------------------------------------------------------------
+
+@dataclass
+class TrajectoryMetrics:
+    """The accuracy figures of one run, flattened by `as_dict` for JSON results files."""
+
+    ate_rmse_m: float
+    ate_mean_m: float
+    ate_median_m: float
+    ate_max_m: float
+    ate_std_m: float
+    paper_mse_m2: float
+    rpe_drift_pct: float
+    n_matched: int
+    path_length_m: float
+    mode: str
+    scale: float
+    rotation_rmse_deg: float
+    rpe_lengths_m: tuple[float, ...] = ()
+    rpe_drift_pct_per_length: tuple[float, ...] = ()
+    rpe_count_per_length: tuple[int, ...] = ()
+
+    def as_dict(self) -> dict:
+        """Flat dict of str/int/float/None; NaN becomes None (strict JSON has no NaN)."""
+        out: dict = {}
+        for name in ('ate_rmse_m', 'ate_mean_m', 'ate_median_m', 'ate_max_m', 'ate_std_m',
+                     'paper_mse_m2', 'rpe_drift_pct', 'n_matched', 'path_length_m', 'mode',
+                     'scale', 'rotation_rmse_deg'):
+            out[name] = getattr(self, name)
+        for length, drift, count in zip(self.rpe_lengths_m, self.rpe_drift_pct_per_length,
+                                        self.rpe_count_per_length):
+            out[f'rpe_drift_pct_{length:g}m'] = drift
+            out[f'rpe_count_{length:g}m'] = count
+        return {k: (None if isinstance(v, float) and math.isnan(v) else v)
+                for k, v in out.items()}
+
+
+class TrajectoryEvaluator:
+    """ATE, paper MSE and RPE drift from one association and one alignment."""
+
+    def __init__(self, mode: str = 'position', max_diff_s: float = 0.05,
+                 lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M, match: str = 'nearest',
+                 max_gap_s: float = 1.0) -> None:
+        _check_args(mode, max_diff_s, match, max_gap_s, lengths_m)
+        self.mode = mode
+        self.max_diff_s = float(max_diff_s)
+        self.lengths_m = tuple(float(v) for v in lengths_m)
+        self.match = match
+        self.max_gap_s = float(max_gap_s)
+
+    @classmethod
+    def from_config(cls, cfg: MetricsConfig) -> 'TrajectoryEvaluator':
+        cfg.validate()
+        return cls(cfg.mode, cfg.max_diff_s, cfg.lengths_m, cfg.match, cfg.max_gap_s)
+
+    def metrics(self, est: Trajectory, ref: Trajectory) -> TrajectoryMetrics:
+        """All figures; RPE uses orientations only in 'se3' mode."""
+        use_orientation = self.mode == 'se3'
+        m = _match(est, ref, self.max_diff_s, self.match, self.max_gap_s,
+                   need_orientation=use_orientation)
+        ate_result = _ate_from_matched(m, self.mode)
+        # se3 and position share the rigid alignment the paper's MSE uses; sim3 does not.
+        rigid = ate_result if self.mode != 'sim3' else _ate_from_matched(m, 'position')
+        mse = float(np.mean(rigid.errors_m**2))
+        drift = _drift_from_matched(m, self.lengths_m, use_orientation)
+        path_length_m = float(np.linalg.norm(np.diff(m.p_ref, axis=0), axis=1).sum())
+        return TrajectoryMetrics(
+            ate_rmse_m=ate_result.rmse_m, ate_mean_m=ate_result.mean_m,
+            ate_median_m=ate_result.median_m, ate_max_m=ate_result.max_m,
+            ate_std_m=ate_result.std_m, paper_mse_m2=mse, rpe_drift_pct=drift['drift_pct'],
+            n_matched=ate_result.n, path_length_m=path_length_m, mode=self.mode,
+            scale=ate_result.scale, rotation_rmse_deg=ate_result.rotation_rmse_deg,
+            rpe_lengths_m=tuple(drift['lengths_m']),
+            rpe_drift_pct_per_length=tuple(drift['drift_pct_per_length']),
+            rpe_count_per_length=tuple(drift['count_per_length']))
+
+    def evaluate(self, est: Trajectory, ref: Trajectory) -> dict:
+        return self.metrics(est, ref).as_dict()
+
+
+def evaluate(est: Trajectory, ref: Trajectory, mode: str = 'position',
+             lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M, max_diff_s: float = 0.05,
+             match: str = 'nearest', max_gap_s: float = 1.0) -> dict:
+    """JSON-friendly flat dict: ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, ate_std_m,
+    paper_mse_m2, rpe_drift_pct, n_matched, path_length_m (reference path over the matched
+    span), mode, scale, rotation_rmse_deg and `rpe_drift_pct_<L>m` / `rpe_count_<L>m` per
+    length. NaN values (e.g. a length longer than the run) are written as None.
+    """
+    return TrajectoryEvaluator(mode, max_diff_s, lengths_m, match, max_gap_s).evaluate(est, ref)
