@@ -1,0 +1,215 @@
+"""Robot trajectories through the orchard: where base_link is at any time.
+
+A scenario is a planar path in the row frame (straight lanes, arcs at the row ends), driven at
+about 1 m/s (slower in turns), with a small lateral and yaw wobble of a skid-steer robot. Height,
+roll and pitch come from the terrain under the four wheels, so the pose is a smooth function of
+time that the LiDAR model can evaluate per firing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gft_odom.errors import SimulationError
+from gft_odom.sim.orchard import HEADLAND_M, Orchard
+
+SCENARIOS = ('row', 'uturn', 'loop')
+
+# Clearpath Jackal: wheelbase 0.262 m, track 0.375 m; base_link above the ground.
+WHEELBASE_M = 0.262
+TRACK_M = 0.375
+BASE_LINK_HEIGHT_M = 0.07
+# uturn: the turn circles the row end, centred this far past the last trunk.
+TURN_CLEARANCE_M = 3.5
+# loop: lanes `LOOP_LANE_GAP` apart, joined by semicircles in the headlands.
+LOOP_LANE_GAP = 2
+
+
+def _arc(centre, radius, a0, a1, step):
+    n = max(2, int(np.ceil(abs(a1 - a0) * radius / step)) + 1)
+    a = np.linspace(a0, a1, n)
+    return np.column_stack([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a)])
+
+
+def _line(p0, p1, step):
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    n = max(2, int(np.ceil(np.linalg.norm(p1 - p0) / step)) + 1)
+    return p0 + np.linspace(0.0, 1.0, n)[:, None] * (p1 - p0)
+
+
+def _join(*pieces):
+    out = [pieces[0]]
+    for p in pieces[1:]:
+        out.append(p[1:] if np.allclose(p[0], out[-1][-1]) else p)
+    return np.concatenate(out)
+
+
+def required_row_length_m(scenario: str, distance_m: float) -> float:
+    """Row length an orchard needs so that `scenario` fits `distance_m` of driving.
+
+    Assumes the widest row spacing (7 m).
+    """
+    if scenario == 'row':
+        need = distance_m + 8.0
+    elif scenario == 'uturn':
+        need = 0.5 * (distance_m - np.pi * 3.5) + 4.0
+    elif scenario == 'loop':
+        radius = 0.5 * LOOP_LANE_GAP * 7.0
+        # One lap a little shorter than the drive (turns are slower), so the loop closes.
+        need = 0.5 * (0.85 * distance_m - 2.0 * np.pi * radius) - 2.0 * TURN_CLEARANCE_M
+    else:
+        raise SimulationError(f'unknown scenario {scenario!r}; choose one of {SCENARIOS}')
+    # Rows of at least 40 m (20 m for a loop, so ~95 m of driving closes one).
+    return float(np.clip(need, 20.0 if scenario == 'loop' else 40.0, 200.0))
+
+
+def _scenario_path_uv(orchard: Orchard, scenario: str, distance_m: float,
+                      step_m: float) -> tuple[np.ndarray, bool]:
+    """Planar path in the row frame and whether it is a closed loop."""
+    n_rows = len(orchard.row_v_m)
+    u0, u1 = orchard.row_start_u_m, orchard.row_end_u_m
+    if scenario == 'row':
+        v = orchard.lane_v_m(n_rows // 2 - 1)
+        start = u0 + 2.0
+        return _line((start, v), (start + max(distance_m, 1.0) + 20.0, v), step_m), False
+    if scenario == 'uturn':
+        lane = n_rows // 2 - 1
+        va, vb = orchard.lane_v_m(lane), orchard.lane_v_m(lane + 1)
+        radius = 0.5 * (vb - va)
+        turn_u = u1 + TURN_CLEARANCE_M
+        leg = float(np.clip(0.5 * (distance_m - np.pi * radius), 3.0, turn_u - u0 - 1.0))
+        path = _join(_line((turn_u - leg, va), (turn_u, va), step_m),
+                     _arc((turn_u, 0.5 * (va + vb)), radius, -0.5 * np.pi, 0.5 * np.pi, step_m),
+                     _line((turn_u, vb), (turn_u - leg - 30.0, vb), step_m))
+        return path, False
+    if scenario == 'loop':
+        lane = max(0, n_rows // 2 - 1 - LOOP_LANE_GAP // 2)
+        lane_b = min(lane + LOOP_LANE_GAP, n_rows - 2)
+        if lane_b == lane:
+            raise SimulationError(f'a loop needs at least 3 rows, the orchard has {n_rows}')
+        va, vb = orchard.lane_v_m(lane), orchard.lane_v_m(lane_b)
+        radius = 0.5 * (vb - va)
+        if radius + 1.0 > HEADLAND_M + TURN_CLEARANCE_M:
+            raise SimulationError(f'loop turn radius {radius:.1f} m does not fit the headland')
+        ua, ub = u0 - TURN_CLEARANCE_M, u1 + TURN_CLEARANCE_M
+        start = u0 + 1.0
+        vm = 0.5 * (va + vb)
+        path = _join(_line((start, va), (ub, va), step_m),
+                     _arc((ub, vm), radius, -0.5 * np.pi, 0.5 * np.pi, step_m),
+                     _line((ub, vb), (ua, vb), step_m),
+                     _arc((ua, vm), radius, 0.5 * np.pi, 1.5 * np.pi, step_m),
+                     _line((ua, va), (start, va), step_m))
+        return path, True
+    raise SimulationError(f'unknown scenario {scenario!r}; choose one of {SCENARIOS}')
+
+
+@dataclass(frozen=True)
+class RobotMotion:
+    """Pose of base_link in the world as a function of time since the start of the run.
+
+    The path is tabulated densely in arc length s; `t_of_s` comes from the speed profile.
+    """
+
+    orchard: Orchard
+    s_m: np.ndarray  # (P,) arc length at the path samples
+    uv_m: np.ndarray  # (P, 2) row-frame path
+    heading_rad: np.ndarray  # (P,) unwrapped path tangent direction in the row frame
+    t_s: np.ndarray  # (P,) time at which s is reached
+    closed: bool
+    lateral_wobble_m: float
+    lateral_wobble_wavelength_m: float
+    lateral_wobble_phase_rad: float
+    yaw_wobble_rad: float
+    yaw_wobble_hz: float
+    yaw_wobble_phase_rad: float
+
+    @property
+    def duration_s(self) -> float:
+        """Time to drive the tabulated path once."""
+        return float(self.t_s[-1])
+
+    def _s_at(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        if self.closed:
+            laps, t_in = np.divmod(t, self.t_s[-1])
+            return np.interp(t_in, self.t_s, self.s_m) + laps * self.s_m[-1]
+        return np.interp(t, self.t_s, self.s_m)
+
+    def planar_pose(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World (x, y) (T, 2) and yaw (T,) of base_link at times `t_s` (seconds from start)."""
+        s = self._s_at(t_s)
+        s_tab = np.mod(s, self.s_m[-1]) if self.closed else s
+        u = np.interp(s_tab, self.s_m, self.uv_m[:, 0])
+        v = np.interp(s_tab, self.s_m, self.uv_m[:, 1])
+        heading = np.interp(s_tab, self.s_m, self.heading_rad)
+        wobble = self.lateral_wobble_m * np.sin(
+            2.0 * np.pi * s / self.lateral_wobble_wavelength_m + self.lateral_wobble_phase_rad)
+        uv = np.column_stack([u - np.sin(heading) * wobble, v + np.cos(heading) * wobble])
+        yaw = heading + self.orchard.heading_rad + self.yaw_wobble_rad * np.sin(
+            2.0 * np.pi * self.yaw_wobble_hz * np.asarray(t_s, float) + self.yaw_wobble_phase_rad)
+        return self.orchard.to_world_xy(uv), yaw
+
+    def poses(self, t_s: np.ndarray) -> np.ndarray:
+        """T_world_base (T, 4, 4) at times `t_s`: planar pose + height, roll, pitch from the
+        ground under the four wheels."""
+        t_s = np.atleast_1d(np.asarray(t_s, dtype=float))
+        xy, yaw = self.planar_pose(t_s)
+        c, s = np.cos(yaw), np.sin(yaw)
+        fwd = np.column_stack([c, s])
+        left = np.column_stack([-s, c])
+        hx, hy = 0.5 * WHEELBASE_M, 0.5 * TRACK_M
+        ground = self.orchard.ground
+        z = {}
+        for name, (a, b) in {'fl': (hx, hy), 'fr': (hx, -hy), 'rl': (-hx, hy),
+                             'rr': (-hx, -hy)}.items():
+            p = xy + a * fwd + b * left
+            z[name] = ground.height(p[:, 0], p[:, 1])
+        front, rear = 0.5 * (z['fl'] + z['fr']), 0.5 * (z['rl'] + z['rr'])
+        lft, rgt = 0.5 * (z['fl'] + z['rl']), 0.5 * (z['fr'] + z['rr'])
+        pitch = np.arctan2(rear - front, WHEELBASE_M)
+        roll = np.arctan2(lft - rgt, TRACK_M)
+        height = 0.5 * (front + rear) + BASE_LINK_HEIGHT_M
+        poses = np.tile(np.eye(4), (t_s.size, 1, 1))
+        poses[:, :3, :3] = Rotation.from_euler('xyz', np.column_stack([roll, pitch, yaw])
+                                               ).as_matrix()
+        poses[:, :3, 3] = np.column_stack([xy, height])
+        return poses
+
+
+def make_motion(orchard: Orchard, scenario: str, duration_s: float, speed_mps: float = 1.0,
+                seed: int = 0, lateral_wobble_m: float = 0.05,
+                yaw_wobble_rad: float = 0.02) -> RobotMotion:
+    """Plan `scenario` in `orchard` for at least `duration_s` of driving at ~`speed_mps`.
+
+    Turns are driven at 60-100 % of the speed depending on curvature.
+    """
+    if not speed_mps > 0.0:
+        raise SimulationError(f'speed_mps must be > 0, got {speed_mps}')
+    if not duration_s >= 0.0:
+        raise SimulationError(f'duration_s must be >= 0, got {duration_s}')
+    step = 0.02
+    uv, closed = _scenario_path_uv(orchard, scenario, duration_s * speed_mps, step)
+    seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    d = np.gradient(uv, s, axis=0)
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    curvature = np.abs(np.gradient(heading, s))
+    # Smooth the curvature over ~1 m so the speed changes gently into and out of turns.
+    kernel = np.ones(max(1, int(1.0 / step)))
+    curvature = np.convolve(curvature, kernel / kernel.size, mode='same')
+    speed = speed_mps * np.clip(1.0 / (1.0 + 1.2 * curvature), 0.6, 1.0)
+    t = np.concatenate([[0.0], np.cumsum(seg / (0.5 * (speed[1:] + speed[:-1])))])
+    if not closed and t[-1] < duration_s:
+        raise SimulationError(f'scenario {scenario!r} path lasts {t[-1]:.1f} s, '
+                              f'{duration_s:.1f} s requested')
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x40710]))
+    return RobotMotion(
+        orchard=orchard, s_m=s, uv_m=uv, heading_rad=heading, t_s=t, closed=closed,
+        lateral_wobble_m=float(lateral_wobble_m),
+        lateral_wobble_wavelength_m=float(rng.uniform(6.0, 12.0)),
+        lateral_wobble_phase_rad=float(rng.uniform(0.0, 2.0 * np.pi)),
+        yaw_wobble_rad=float(yaw_wobble_rad), yaw_wobble_hz=float(rng.uniform(0.2, 0.5)),
+        yaw_wobble_phase_rad=float(rng.uniform(0.0, 2.0 * np.pi)))
