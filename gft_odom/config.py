@@ -15,6 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from gft_odom.core.metrics import MetricsConfig
 from gft_odom.core.registration import RegistrationConfig
 from gft_odom.core.spectral.filter import SpectralConfig
 from gft_odom.errors import ConfigError
@@ -89,6 +90,7 @@ class GftOdomConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     node: NodeConfig = field(default_factory=NodeConfig)
     ground_truth: GroundTruthConfig = field(default_factory=GroundTruthConfig)
+    evaluation: MetricsConfig = field(default_factory=MetricsConfig)
 
     def validate(self) -> None:
         for section in dataclasses.fields(self):

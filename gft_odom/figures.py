@@ -66,9 +66,10 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajector
     ax.plot(*xy.T, color='tab:red', lw=1.4, label=label)
     ax.plot(*xy[0], 'o', color='tab:red', ms=5)
     title = 'trajectory (top view)'
-    if metrics and 'ate_rmse_m' in metrics:
-        title += (f'\nATE RMSE {metrics["ate_rmse_m"]:.2f} m, '
-                  f'RPE {metrics.get("rpe_drift_pct", float("nan")):.2f} %')
+    if metrics and metrics.get('ate_rmse_m') is not None:
+        title += f'\nATE RMSE {metrics["ate_rmse_m"]:.2f} m'
+        if metrics.get('rpe_drift_pct') is not None:
+            title += f', RPE drift {metrics["rpe_drift_pct"]:.2f} %'
     ax.set_title(title)
     ax.set_xlabel('x [m]')
     ax.set_ylabel('y [m]')

@@ -87,14 +87,23 @@ def load_config(path: str | Path | None = None,
     return with_values(GftOdomConfig(), flat)
 
 
+class _ParamsDumper(yaml.SafeDumper):
+    """Block mappings (one parameter a line), flow lists (`band_mask: [1, 9, 10]`)."""
+
+
+_ParamsDumper.add_representer(
+    list, lambda dumper, data: dumper.represent_sequence('tag:yaml.org,2002:seq', data,
+                                                         flow_style=True))
+
+
 def config_to_yaml(config: GftOdomConfig, header: str = '') -> str:
     """The params-file text of `config` (every parameter, nested by section)."""
     nested: dict[str, dict[str, Any]] = {}
     for key, value in flatten(config).items():
         section, name = key.split('.', 1)
         nested.setdefault(section, {})[name] = list(value) if isinstance(value, tuple) else value
-    text = yaml.safe_dump({'/**': {'ros__parameters': nested}}, sort_keys=False,
-                          default_flow_style=None)
+    text = yaml.dump({'/**': {'ros__parameters': nested}}, Dumper=_ParamsDumper,
+                     sort_keys=False, width=99)
     comment = ''.join(f'# {line}\n' for line in header.splitlines())
     return comment + text
 

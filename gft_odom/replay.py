@@ -20,7 +20,7 @@ import numpy as np
 
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
-from gft_odom.core.metrics import evaluate
+from gft_odom.core.metrics import TrajectoryEvaluator
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import GroundTruthError
 from gft_odom.io.bags import ScanBagReader
@@ -123,18 +123,20 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
     """Flat JSON-friendly metrics: accuracy (with ground truth), latency, points, failures."""
     lat_ms = 1e3 * replay.latency_s
     n = int(lat_ms.size)
+    valid = replay.points_kept >= 0  # -1: not known (a lost best-effort cloud)
+    kept = replay.points_kept[valid]
     metrics: dict = {
         'n_scans': n,
         'use_spectral_filter': config.pipeline.use_spectral_filter,
         'registration_mode': config.registration.mode,
         'band_mask': list(config.spectral.band_mask),
         'n_bands': config.spectral.n_bands,
-        'latency_median_ms': float(np.median(lat_ms)) if n else float('nan'),
-        'latency_p95_ms': float(np.percentile(lat_ms, 95)) if n else float('nan'),
+        'latency_median_ms': float(np.median(lat_ms)) if n else None,
+        'latency_p95_ms': float(np.percentile(lat_ms, 95)) if n else None,
         'points_in_mean': float(replay.points_in.mean()) if n else 0.0,
-        'points_kept_mean': float(replay.points_kept.mean()) if n else 0.0,
-        'points_kept_fraction': (float(replay.points_kept.sum() / max(replay.points_in.sum(), 1))
-                                 if n else 0.0),
+        'points_kept_mean': float(kept.mean()) if kept.size else 0.0,
+        'points_kept_fraction': (float(kept.sum() / max(replay.points_in[valid].sum(), 1))
+                                 if kept.size else 0.0),
         'fallbacks': int(sum(s.startswith('fallback') for s in replay.statuses)),
         'skipped_messages': int(replay.skipped_messages),
     }
@@ -143,11 +145,12 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
     duration_s = (replay.sensor_trajectory.stamps_s[-1] - replay.sensor_trajectory.stamps_s[0]
                   if n > 1 else float('nan'))
     metrics['real_time_factor'] = (float(duration_s / replay.latency_s.sum())
-                                   if n > 1 and replay.latency_s.sum() > 0 else float('nan'))
+                                   if n > 1 and replay.latency_s.sum() > 0 else None)
     if replay.ground_truth is not None:
         estimate = estimate_for_ground_truth(replay, config)
         try:
-            metrics.update(evaluate(estimate, replay.ground_truth, mode='position'))
+            metrics.update(TrajectoryEvaluator.from_config(config.evaluation)
+                           .evaluate(estimate, replay.ground_truth))
         except GroundTruthError as exc:
             raise GroundTruthError(f'cannot evaluate against the ground truth: {exc}') from None
         metrics['ground_truth_frame'] = 'gps_antenna' if replay.ground_truth_is_gps else 'sensor'

@@ -21,3 +21,11 @@ def ros_env(ros_domain_id, monkeypatch) -> dict[str, str]:
     monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
     monkeypatch.setenv('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
     return dict(os.environ)
+
+
+@pytest.fixture(scope='session')
+def orchard_bag(tmp_path_factory):
+    """A short simulated orchard drive (rosbag2, full VLP-16 geometry) with its ground truth."""
+    from gft_odom.sim.writer import simulate_to_bag
+    out = tmp_path_factory.mktemp('orchard')
+    return simulate_to_bag(out, scenario='row', n_scans=15, seed=3, topdown_png=False)

@@ -30,7 +30,7 @@ from gft_odom.ros.conversions import (blob_to_msg, odometry_msg, pose_stamped_ms
 
 NODE_NAME = 'filter_odom_node'
 # Sections whose values are only read when the pipeline starts (a change needs a restart).
-STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame',
+STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame', 'evaluation.',
                          'node.base_to_sensor', 'node.publish_tf', 'ground_truth.')
 WARN_PERIOD_S = 5.0
 SUMMARY_PERIOD_S = 10.0

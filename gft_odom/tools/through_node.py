@@ -32,6 +32,7 @@ from gft_odom.replay import ReplayResult, is_gps_ground_truth, summarize
 log = logging.getLogger(__name__)
 
 NODE_NAME = 'filter_odom_node'
+RESEND_AFTER_S = 2.0
 
 
 class NodeProcessError(GftOdomError):
@@ -79,7 +80,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
     import rclpy
     from nav_msgs.msg import Odometry, Path as PathMsg
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import PointCloud2, PointField
 
@@ -117,7 +118,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     node.create_subscription(PointCloud2, f'/{NODE_NAME}/filtered_points',
                              lambda m: kept_points.__setitem__(stamp_to_ns(m.header.stamp),
                                                                m.width * m.height),
-                             QoSProfile(depth=10))
+                             qos_profile_sensor_data)
     clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10))
     cloud_pub = node.create_publisher(PointCloud2, topic, reliable)
 
@@ -137,6 +138,9 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         if not spin_until(lambda: cloud_pub.get_subscription_count() > 0
                           and node.count_publishers(f'/{NODE_NAME}/odometry') > 0, 60.0):
             raise NodeProcessError(f'filter_odom_node did not come up within 60 s ({node_log})')
+        # Seeing each other in the graph is not yet matched endpoints both ways: give DDS a
+        # moment, or the first odometry can go out before our subscription is matched.
+        spin_until(lambda: False, 2.0)
         with ScanBagReader(list(bag_paths), topic=topic) as reader:
             total = len(reader) if max_scans is None else min(len(reader), max_scans)
             for i, (stamp_ns, raw) in enumerate(reader.iter_messages()):
@@ -146,15 +150,17 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                 stamp_ns = stamp_to_ns(msg.header.stamp)
                 clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
                 t0 = time.perf_counter()
+                # Sensor-data QoS is best effort: a ~0.5 MB cloud is fragmented and may be lost
+                # under load, so it is sent again until its odometry comes back (the node
+                # ignores a copy it has already processed).
                 got = False
-                for _ in range(3):  # a lost best-effort sample is sent again
+                deadline = time.monotonic() + scan_timeout_s
+                while not got and time.monotonic() < deadline:
                     cloud_pub.publish(msg)
-                    if spin_until(lambda: stamp_ns in odometry, scan_timeout_s / 3):
-                        got = True
-                        break
+                    got = spin_until(lambda: stamp_ns in odometry, RESEND_AFTER_S)
                 latency.append(time.perf_counter() - t0)
-                points_in.append(msg.width * msg.height)
                 if got:
+                    points_in.append(msg.width * msg.height)
                     stamps.append(stamp_ns)
                     statuses.append('ok')
                 else:
@@ -184,7 +190,8 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     replay = ReplayResult(
         sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
         stage_s={'round_trip': np.asarray(latency)}, points_in=np.asarray(points_in),
-        points_kept=np.array([kept_points.get(s, 0) for s in stamps]), statuses=statuses,
+        # Best-effort like every sensor stream: a lost filtered cloud counts as -1.
+        points_kept=np.array([kept_points.get(s, -1) for s in stamps]), statuses=statuses,
         skipped_messages=skipped, ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
     replay.metrics = summarize(replay, config)

@@ -1,0 +1,133 @@
+"""filter_odom_node as users run it: colcon-built, its own process, DDS in and out."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gft_odom.config import GftOdomConfig, with_values
+from gft_odom.params_file import write_params_file
+from gft_odom.replay import run_replay
+from gft_odom.tools.through_node import replay_through_node
+
+pytestmark = [pytest.mark.slow, pytest.mark.ros]
+
+REPO = Path(__file__).resolve().parents[2]
+N_SCANS = 12
+
+
+@pytest.fixture(scope='module')
+def installed_node(tmp_path_factory):
+    """colcon build of this package into a fresh workspace; the script `ros2 run` would start."""
+    ws = tmp_path_factory.mktemp('ws')
+    colcon = Path(sys.executable).with_name('colcon')
+    proc = subprocess.run(
+        [str(colcon), '--log-base', str(ws / 'log'), 'build', '--base-paths', str(REPO),
+         '--build-base', str(ws / 'build'), '--install-base', str(ws / 'install')],
+        cwd=ws, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    prefix = ws / 'install' / 'gft_odom'
+    exe = prefix / 'lib' / 'gft_odom' / 'filter_odom_node'
+    assert exe.is_file()
+    site = next((prefix / 'lib').glob('python3*/site-packages'))
+    assert (site / 'gft_odom' / 'ros' / 'node.py').is_file()
+    assert (prefix / 'share' / 'gft_odom' / 'config' / 'filter_odom.yaml').is_file()
+    assert (prefix / 'share' / 'gft_odom' / 'launch' / 'filter_odom.launch.py').is_file()
+    env = dict(os.environ)
+    # What `source install/setup.bash` does for this package.
+    env['PYTHONPATH'] = os.pathsep.join([str(site), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
+    env['AMENT_PREFIX_PATH'] = str(prefix)
+    return exe, env
+
+
+def test_node_trajectory_equals_in_process_replay(installed_node, orchard_bag, ros_env,
+                                                   tmp_path):
+    exe, env = installed_node
+    env.update({k: ros_env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    config = GftOdomConfig()
+    in_process = run_replay([orchard_bag.bag_path], config, max_scans=N_SCANS)
+    through_node = replay_through_node([orchard_bag.bag_path], config, max_scans=N_SCANS,
+                                       node_exe=str(exe), env=env,
+                                       log_path=tmp_path / 'node.log')
+    assert len(through_node.sensor_trajectory) == N_SCANS
+    np.testing.assert_array_equal(through_node.sensor_trajectory.stamps_ns,
+                                  in_process.sensor_trajectory.stamps_ns)
+    # Same code, same scans: equal up to float round-off of the Odometry message (float64).
+    np.testing.assert_allclose(through_node.base_trajectory.poses,
+                               in_process.base_trajectory.poses, atol=1e-6)
+    assert through_node.metrics['node_path_length'] == N_SCANS
+    # Filtered clouds (best-effort QoS) came back with as many points as in-process kept.
+    received = through_node.points_kept >= 0
+    assert received.sum() >= N_SCANS // 2
+    np.testing.assert_array_equal(through_node.points_kept[received],
+                                  in_process.points_kept[received])
+
+
+def test_node_refuses_an_invalid_params_file(installed_node, ros_env, tmp_path):
+    exe, env = installed_node
+    env.update({k: ros_env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    params = tmp_path / 'bad.yaml'
+    params.write_text('/**:\n  ros__parameters:\n    spectral:\n      tau_m: -0.3\n')
+    proc = subprocess.run([str(exe), '--ros-args', '--params-file', str(params)], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0
+    assert 'tau_m' in proc.stdout + proc.stderr
+
+
+def test_node_refuses_an_invalid_parameter_at_run_time(installed_node, ros_env, tmp_path):
+    import rclpy
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import GetParameters, SetParameters
+
+    exe, env = installed_node
+    env.update({k: ros_env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    good = with_values(GftOdomConfig(), {'spectral.tau_m': 0.35})
+    params = write_params_file(tmp_path / 'good.yaml', good)
+    proc = subprocess.Popen([str(exe), '--ros-args', '--params-file', str(params)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    node = rclpy.create_node('param_client', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+
+    def call(client, request):
+        assert client.wait_for_service(timeout_sec=30.0), 'node services did not appear'
+        future = client.call_async(request)
+        deadline = time.monotonic() + 10.0
+        while not future.done() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert future.done()
+        return future.result()
+
+    def double(name, value):
+        return Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                         double_value=value))
+
+    try:
+        setter = node.create_client(SetParameters, '/filter_odom_node/set_parameters')
+        getter = node.create_client(GetParameters, '/filter_odom_node/get_parameters')
+        bad = call(setter, SetParameters.Request(parameters=[double('spectral.tau_m', -1.0)]))
+        assert not bad.results[0].successful
+        assert 'tau_m' in bad.results[0].reason
+        band = Parameter(name='spectral.band_mask', value=ParameterValue(
+            type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=[0, 11]))
+        bad_band = call(setter, SetParameters.Request(parameters=[band]))
+        assert not bad_band.results[0].successful
+        value = call(getter, GetParameters.Request(names=['spectral.tau_m'])).values[0]
+        assert value.double_value == pytest.approx(0.35)  # the old value stays
+        ok = call(setter, SetParameters.Request(parameters=[double('spectral.tau_m', 0.4)]))
+        assert ok.results[0].successful, ok.results[0].reason
+        assert proc.poll() is None, 'the node must keep running'
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        proc.terminate()
+        proc.wait(timeout=15)
