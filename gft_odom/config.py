@@ -44,7 +44,8 @@ class PipelineConfig:
             raise ConfigError(
                 f'max_range_m ({self.max_range_m}) must be > min_range_m ({self.min_range_m})')
         if self.max_points_per_scan < 100:
-            raise ConfigError(f'max_points_per_scan must be >= 100, got {self.max_points_per_scan}')
+            raise ConfigError(
+                f'max_points_per_scan must be >= 100, got {self.max_points_per_scan}')
 
 
 @dataclass(frozen=True)

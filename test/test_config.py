@@ -8,8 +8,7 @@ import pytest
 
 from gft_odom.config import GftOdomConfig, flatten, parameter_types, with_values
 from gft_odom.errors import ConfigError
-from gft_odom.params_file import (config_to_yaml, load_config, read_params_file,
-                                  write_params_file)
+from gft_odom.params_file import config_to_yaml, load_config, read_params_file, write_params_file
 from gft_odom.tools.cmd_config import HEADER
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'

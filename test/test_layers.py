@@ -17,8 +17,8 @@ LAYERS = {
     'pipeline': 3, 'replay': 3, 'bands': 3, 'figures': 3,
     'tools': 4, 'ros': 4,
 }
-ROS_MODULES = {'rclpy', 'sensor_msgs', 'nav_msgs', 'geometry_msgs', 'std_msgs', 'builtin_interfaces',
-               'rosgraph_msgs', 'tf2_ros', 'rcl_interfaces'}
+ROS_MODULES = {'rclpy', 'sensor_msgs', 'nav_msgs', 'geometry_msgs', 'std_msgs',
+               'builtin_interfaces', 'rosgraph_msgs', 'tf2_ros', 'rcl_interfaces'}
 FORBIDDEN_EXTERNAL = {
     0: ROS_MODULES | {'yaml', 'argparse', 'tqdm', 'matplotlib', 'rosbags'},
     1: ROS_MODULES | {'argparse', 'tqdm'},

@@ -25,8 +25,7 @@ from gft_odom.config import GftOdomConfig, flatten, with_values
 from gft_odom.errors import GftOdomError
 from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
 from gft_odom.pipeline import FrameResult, OdometryPipeline
-from gft_odom.ros.conversions import (blob_to_msg, odometry_msg, pose_stamped_msg,
-                                      transform_msg)
+from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg, transform_msg
 
 NODE_NAME = 'filter_odom_node'
 # Sections whose values are only read when the pipeline starts (a change needs a restart).
@@ -48,7 +47,7 @@ class FilterOdomNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         for name, value in flatten(GftOdomConfig()).items():
             self.declare_parameter(name, _ros_value(value),
-                                   ParameterDescriptor(description=f'see gft_odom.config ({name})'))
+                                   ParameterDescriptor(description=f'gft_odom.config: {name}'))
         # Raises ConfigError with the reason when the params file holds an invalid value.
         self.config = with_values(GftOdomConfig(), {
             name: self.get_parameter(name).value for name in flatten(GftOdomConfig())})
@@ -104,7 +103,8 @@ class FilterOdomNode(Node):
             return SetParametersResult(successful=False, reason=str(exc))
         self.config = new_config
         self.pipeline.reconfigure(new_config)
-        self.path_poses = collections.deque(self.path_poses, maxlen=new_config.node.path_max_length)
+        self.path_poses = collections.deque(self.path_poses,
+                                            maxlen=new_config.node.path_max_length)
         return SetParametersResult(successful=True)
 
     # -- per scan --------------------------------------------------------------------------

@@ -20,6 +20,8 @@ SUBCOMMAND_MODULES = (
     'replay',
     'demo',
     'config',
+    'search_bands',
+    'bench',
 )
 
 log = logging.getLogger('gft_odom')

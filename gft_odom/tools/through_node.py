@@ -79,7 +79,8 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                         log_path: str | Path | None = None) -> ReplayResult:
     """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
     import rclpy
-    from nav_msgs.msg import Odometry, Path as PathMsg
+    from nav_msgs.msg import Odometry
+    from nav_msgs.msg import Path as PathMsg
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import PointCloud2, PointField
@@ -114,7 +115,8 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                              lambda m: odometry.__setitem__(stamp_to_ns(m.header.stamp),
                                                             odometry_to_pose(m)), reliable)
     node.create_subscription(PathMsg, f'/{NODE_NAME}/path',
-                             lambda m: last_path.__setitem__(slice(None), [m]), QoSProfile(depth=5))
+                             lambda m: last_path.__setitem__(slice(None), [m]),
+                             QoSProfile(depth=5))
     node.create_subscription(PointCloud2, f'/{NODE_NAME}/filtered_points',
                              lambda m: kept_points.__setitem__(stamp_to_ns(m.header.stamp),
                                                                m.width * m.height),
