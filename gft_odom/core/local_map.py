@@ -1,0 +1,110 @@
+"""Voxel downsampling and a bounded local map of recent keyframes, for scan-to-map ICP.
+
+The map is the union of the last few keyframes (deskewed scans in the world frame, taken every
+`keyframe_distance_m` or `keyframe_rotation_rad`), voxelised and cropped to a radius around the
+newest keyframe. It is rebuilt only when a keyframe is added, so its normals and GICP
+covariances (the expensive part) are computed once per keyframe, not once per scan.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial.transform import Rotation
+
+
+def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """One int64 key per point naming its voxel (21 bits per axis, +-1e6 voxels)."""
+    ijk = np.floor(points_xyz / voxel_size_m).astype(np.int64) + (1 << 20)
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def voxel_downsample_indices(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Indices of the first point in each occupied voxel, in input order.
+
+    First point rather than centroid: it keeps a real measurement and its per-point time.
+    """
+    if points_xyz.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, first = np.unique(voxel_keys(points_xyz, voxel_size_m), return_index=True)
+    return np.sort(first)
+
+
+def to_cloud(points_xyz: np.ndarray) -> o3d.geometry.PointCloud:
+    """numpy (N, 3) -> open3d cloud."""
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points_xyz)))
+
+
+class LocalMap:
+    """Sliding window of keyframes in the world frame, served as one open3d cloud."""
+
+    def __init__(self, voxel_size_m: float = 0.3, max_range_m: float = 40.0,
+                 max_points: int = 40000, max_keyframes: int = 15,
+                 keyframe_distance_m: float = 1.0, keyframe_rotation_rad: float = 0.2,
+                 normal_neighbours: int = 15, with_normals: bool = True,
+                 with_covariances: bool = False):
+        self.voxel_size_m = voxel_size_m
+        self.max_range_m = max_range_m
+        self.max_points = max_points
+        self.keyframe_distance_m = keyframe_distance_m
+        self.keyframe_rotation_rad = keyframe_rotation_rad
+        self.normal_neighbours = normal_neighbours
+        self.with_normals = with_normals
+        self.with_covariances = with_covariances
+        self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max_keyframes)
+        self.cloud = o3d.geometry.PointCloud()
+        self.n_rebuilds = 0
+
+    def __len__(self) -> int:
+        return len(self.cloud.points)
+
+    def clear(self) -> None:
+        """Drop every keyframe."""
+        self._keyframes.clear()
+        self.cloud = o3d.geometry.PointCloud()
+
+    @property
+    def points_xyz(self) -> np.ndarray:
+        return np.asarray(self.cloud.points)
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    def needs_keyframe(self, T_world_sensor: np.ndarray) -> bool:
+        """True when the sensor moved or turned enough since the last keyframe."""
+        if not self._keyframes:
+            return True
+        T_last = self._keyframes[-1][0]
+        if np.linalg.norm(T_world_sensor[:3, 3] - T_last[:3, 3]) >= self.keyframe_distance_m:
+            return True
+        R_rel = T_last[:3, :3].T @ T_world_sensor[:3, :3]
+        return Rotation.from_matrix(R_rel).magnitude() >= self.keyframe_rotation_rad
+
+    def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray) -> None:
+        """Store a keyframe (world-frame points) and rebuild the served cloud."""
+        keep = voxel_downsample_indices(points_world, self.voxel_size_m)
+        self._keyframes.append((T_world_sensor.copy(), points_world[keep]))
+        self._rebuild(T_world_sensor[:3, 3])
+
+    def _rebuild(self, centre_xyz: np.ndarray) -> None:
+        # Newest keyframe first, so voxels keep the freshest (least drifted) point.
+        merged = np.concatenate([pts for _, pts in reversed(self._keyframes)])
+        d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
+        merged = merged[d2 <= self.max_range_m ** 2]
+        merged = merged[voxel_downsample_indices(merged, self.voxel_size_m)]
+        if merged.shape[0] > self.max_points:
+            # Keep the nearest points: registration is best conditioned close to the sensor.
+            d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
+            merged = merged[np.argpartition(d2, self.max_points - 1)[:self.max_points]]
+        cloud = to_cloud(merged)
+        if merged.shape[0] >= 3:
+            search = o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours)
+            if self.with_normals:
+                cloud.estimate_normals(search)
+            if self.with_covariances:
+                cloud.estimate_covariances(search)
+        self.cloud = cloud
+        self.n_rebuilds += 1
