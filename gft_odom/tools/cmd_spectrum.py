@@ -1,0 +1,200 @@
+"""`gft-odom spectrum`: the graph-frequency colour map of a merged cloud (the paper's Figure 3).
+
+Each of the first N scans gets its per-point frequency nu in its own sensor frame (exactly what
+the filter sees online), is moved into the world frame with the ground-truth sensor pose at its
+stamp, and the merged cloud is drawn top-down and from the side, low frequencies dark blue,
+high light green; points with no spectrum (isolated, outside the z range) in light grey.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from gft_odom.errors import GroundTruthError
+
+log = logging.getLogger(__name__)
+
+# Dark blue (low nu) -> light green (high nu), as in the paper's figure.
+FREQUENCY_COLOURS = ('#081d58', '#253494', '#1d91c0', '#41b6c4', '#7fcdbb', '#c7e9b4',
+                     '#edf8b1')
+NO_SPECTRUM_COLOUR = '#d0d0d0'
+MAX_PLOT_POINTS = 1_500_000
+# A scan whose stamp is further than this outside the ground truth's time span is an error.
+MAX_EXTRAPOLATION_S = 0.1
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        'spectrum', help='colour a merged cloud by graph frequency (PNG)',
+        description='Merge the first N scans of a bag into the world frame with ground-truth '
+                    "sensor poses and write a PNG coloured by each point's graph frequency "
+                    'nu (top-down and side view).')
+    p.add_argument('bags', nargs='+', metavar='BAG', help='bag file(s) or rosbag2 folder')
+    p.add_argument('--gt', required=True,
+                   help='ground-truth SENSOR poses: TUM file (e.g. ground_truth/'
+                        'gt_sensor_tum.txt from `gft-odom simulate`), gt.csv or gt.bag')
+    p.add_argument('--out', required=True, help='output PNG path')
+    p.add_argument('--scans', type=int, default=50, help='number of scans to merge (50)')
+    p.add_argument('--every', type=int, default=1, help='use every k-th scan (1)')
+    p.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
+    p.add_argument('--config', metavar='YAML', help='ROS params file (spectral section used)')
+    p.add_argument('--set', dest='overrides', action='append', default=[],
+                   metavar='SECTION.KEY=VALUE',
+                   help='override a parameter, e.g. --set spectral.tau_m=0.3')
+    p.add_argument('--radius-m', type=float, default=30.0,
+                   help='draw points within this distance (x, y) of the sensor path (30)')
+    p.add_argument('--colour-scale', choices=('quantile', 'linear'), default='quantile',
+                   help='quantile: each colour holds an equal share of the points (nu is '
+                        'far from uniform); linear: nu 0..1 (default quantile)')
+    p.add_argument('--title', help='figure title')
+    return p
+
+
+def pose_at(stamps_ns: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray:
+    """T_world_sensor at `stamp_ns`: linear in position, slerp in rotation."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    span = (stamps_ns[0] - MAX_EXTRAPOLATION_S * 1e9, stamps_ns[-1] + MAX_EXTRAPOLATION_S * 1e9)
+    if not span[0] <= stamp_ns <= span[1]:
+        raise GroundTruthError(
+            f'scan stamp {stamp_ns * 1e-9:.3f} s is outside the ground truth '
+            f'({stamps_ns[0] * 1e-9:.3f} .. {stamps_ns[-1] * 1e-9:.3f} s)')
+    if len(stamps_ns) == 1:
+        return poses[0]
+    k = int(np.clip(np.searchsorted(stamps_ns, stamp_ns) - 1, 0, len(stamps_ns) - 2))
+    t0, t1 = int(stamps_ns[k]), int(stamps_ns[k + 1])
+    a = float(np.clip((stamp_ns - t0) / max(t1 - t0, 1), 0.0, 1.0))
+    T = np.eye(4)
+    T[:3, 3] = (1.0 - a) * poses[k, :3, 3] + a * poses[k + 1, :3, 3]
+    slerp = Slerp([0.0, 1.0], Rotation.from_matrix(poses[k:k + 2, :3, :3]))
+    T[:3, :3] = slerp([a]).as_matrix()[0]
+    return T
+
+
+def merge_frequencies(scans, traj, spectral_filter, max_scans: int, every: int = 1):
+    """World points (M, 3), their nu (M,) (NaN: no spectrum), and the sensor positions."""
+    from gft_odom.core.geometry import transform_points
+
+    order = np.argsort(traj.stamps_ns, kind='stable')
+    stamps, poses = traj.stamps_ns[order], traj.poses[order]
+    points, nus, positions = [], [], []
+    for index, scan in enumerate(scans):
+        if len(positions) >= max_scans:
+            break
+        if index % every:
+            continue
+        T = pose_at(stamps, poses, scan.stamp_ns)
+        freqs = spectral_filter.frequencies(scan.points_xyz)
+        ok = freqs.finite
+        points.append(transform_points(T, scan.points_xyz[ok]))
+        nus.append(freqs.nu[ok])
+        positions.append(T[:3, 3])
+    if not positions:
+        return np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros((0, 3))
+    return np.concatenate(points), np.concatenate(nus), np.array(positions)
+
+
+def near_path(points: np.ndarray, positions: np.ndarray, radius_m: float) -> np.ndarray:
+    """(M,) bool: points within `radius_m` (x, y) of some sensor position."""
+    from scipy.spatial import cKDTree
+
+    if positions.shape[0] == 0 or points.shape[0] == 0:
+        return np.zeros(points.shape[0], dtype=bool)
+    dist, _ = cKDTree(positions[:, :2]).query(points[:, :2], distance_upper_bound=radius_m)
+    return np.isfinite(dist)
+
+
+def draw(points: np.ndarray, nu: np.ndarray, positions: np.ndarray, out: Path,
+         title: str, colour_scale: str = 'quantile') -> None:
+    """Top-down and side view, coloured by nu, written to `out` as PNG."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import BoundaryNorm, LinearSegmentedColormap, Normalize
+
+    if points.shape[0] > MAX_PLOT_POINTS:
+        keep = np.random.default_rng(0).choice(points.shape[0], MAX_PLOT_POINTS, replace=False)
+        points, nu = points[keep], nu[keep]
+    has = np.isfinite(nu)
+    norm = Normalize(0.0, 1.0)
+    cmap = LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS)
+    if colour_scale == 'quantile' and has.sum() > 10:
+        edges = np.unique(np.quantile(nu[has], np.linspace(0.0, 1.0, 11)))
+        if edges.size >= 3:
+            cmap = LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS,
+                                                     N=edges.size - 1)
+            norm = BoundaryNorm(edges, cmap.N)
+    # Draw low frequencies last so the sparse trunk/frame structure is not buried under canopy.
+    order = np.flatnonzero(has)[np.argsort(-nu[has], kind='stable')]
+    extent = np.ptp(points[:, :2], axis=0) if points.size else np.ones(2)
+    width = 14.0
+    height = float(np.clip(width * extent[1] / max(extent[0], 1e-6), 3.0, 10.0)) + 3.5
+    fig, (ax_top, ax_side) = plt.subplots(
+        2, 1, figsize=(width, height), gridspec_kw={'height_ratios': [3, 1]},
+        constrained_layout=True)
+    scatter = None
+    for ax, (i, j), label in ((ax_top, (0, 1), 'y [m]'), (ax_side, (0, 2), 'z [m]')):
+        ax.scatter(points[~has, i], points[~has, j], s=0.2, c=NO_SPECTRUM_COLOUR,
+                   linewidths=0, rasterized=True)
+        scatter = ax.scatter(points[order, i], points[order, j], s=0.3, c=nu[order], cmap=cmap,
+                             norm=norm, linewidths=0, rasterized=True)
+        ax.set_xlabel('x [m]')
+        ax.set_ylabel(label)
+        ax.set_aspect('equal')
+        ax.set_facecolor('white')
+    if positions.size:
+        ax_top.plot(positions[:, 0], positions[:, 1], '-', color='#e34a33', lw=1.2,
+                    label='sensor path (ground truth)')
+        ax_top.legend(loc='upper right', fontsize=8)
+    ax_top.set_title(title)
+    ax_side.set_title('side view')
+    bar = fig.colorbar(scatter, ax=[ax_top, ax_side], shrink=0.6,
+                       label='graph frequency nu = lambda / lambda_max')
+    if isinstance(norm, BoundaryNorm):
+        bar.set_ticks(norm.boundaries)
+        bar.set_ticklabels([f'{b:.3f}' for b in norm.boundaries])
+        bar.ax.set_title('deciles', fontsize=8)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=150)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gft_odom.core.spectral import SpectralFilter
+    from gft_odom.io.bags import ScanBagReader
+    from gft_odom.io.ground_truth import read_ground_truth
+    from gft_odom.params_file import load_config
+
+    if args.scans < 1 or args.every < 1:
+        from gft_odom.errors import ConfigError
+        raise ConfigError(f'--scans and --every must be >= 1, got {args.scans}, {args.every}')
+    config = load_config(args.config, args.overrides)
+    spectral_filter = SpectralFilter.from_config(config.spectral)
+    traj = read_ground_truth(args.gt)
+    with ScanBagReader(args.bags, args.topic) as reader:
+        points, nu, positions = merge_frequencies(reader, traj, spectral_filter, args.scans,
+                                                  args.every)
+    if positions.shape[0] == 0:
+        from gft_odom.errors import BagError
+        raise BagError(f'no scans on {args.topic} in {", ".join(map(str, args.bags))}')
+    s = config.spectral
+    title = args.title or (
+        f'graph frequency of {positions.shape[0]} merged scans ({points.shape[0]} points); '
+        f'h={s.slice_thickness_m} m, tau={s.tau_m} m, sigma={s.sigma_m} m, {s.method}, '
+        f'{s.solver}')
+    near = near_path(points, positions, args.radius_m)
+    out = Path(args.out)
+    draw(points[near], nu[near], positions, out, title, args.colour_scale)
+    has = np.isfinite(nu)
+    counts = np.histogram(nu[has], bins=s.n_bands, range=(0.0, 1.0))[0]
+    print(f'{positions.shape[0]} scans, {points.shape[0]} points, '
+          f'{100.0 * (1.0 - has.mean()):.1f} % without spectrum')
+    print('points per nu band: ' + ' '.join(
+        f'{b + 1}:{100.0 * c / max(has.sum(), 1):.1f}%' for b, c in enumerate(counts)))
+    print(f'wrote {out}')
+    return 0

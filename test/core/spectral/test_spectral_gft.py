@@ -1,0 +1,87 @@
+"""Exact GFT: transform pair, Parseval, and sign-free point frequencies."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gft_odom.core.spectral.gft import (
+    band_responses_exact,
+    dominant_frequency,
+    fourier_basis,
+    gft,
+    igft,
+    signal_frequency,
+)
+from gft_odom.core.spectral.graph import gaussian_graph, laplacian
+
+
+def small_graph(seed: int, n: int = 80):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 2.0, (n, 2))
+    L = laplacian(gaussian_graph(xy, None, 0.5, 0.25)).toarray()
+    X = xy - xy.mean(axis=0)
+    return L, X
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_inverse_gft_of_gft_is_identity_and_parseval_holds(seed):
+    L, X = small_graph(seed)
+    lam, U = fourier_basis(L)
+    f = np.random.default_rng(seed).normal(size=(L.shape[0], 3))
+    f_hat = gft(U, f)
+    np.testing.assert_allclose(igft(U, f_hat), f, atol=1e-10)
+    np.testing.assert_allclose(np.sum(f_hat**2, axis=0), np.sum(f**2, axis=0), rtol=1e-10)
+    np.testing.assert_allclose(L @ U, U * lam, atol=1e-9)
+    assert lam[0] >= 0.0 and np.all(np.diff(lam) >= -1e-12)
+
+
+def test_band_responses_split_the_signal():
+    L, X = small_graph(3)
+    lam, U = fourier_basis(L)
+    r = band_responses_exact(lam, U, X, lam[-1], 5)
+    assert r.shape == (L.shape[0], 5) and np.all(r >= 0.0)
+    # The band projections are orthogonal and sum to X: energies add up to ||X||^2.
+    np.testing.assert_allclose(r.sum(), np.sum(X**2), rtol=1e-9)
+
+
+def test_frequencies_do_not_change_when_eigenvector_signs_flip():
+    L, X = small_graph(7)
+    lam, U = fourier_basis(L)
+    signs = np.where(np.random.default_rng(0).random(U.shape[1]) < 0.5, -1.0, 1.0)
+    flipped = U * signs
+    assert not np.allclose(flipped, U)
+    np.testing.assert_allclose(band_responses_exact(lam, flipped, X, lam[-1], 8),
+                               band_responses_exact(lam, U, X, lam[-1], 8), atol=1e-10)
+    np.testing.assert_array_equal(dominant_frequency(lam, flipped, lam[-1]),
+                                  dominant_frequency(lam, U, lam[-1]))
+
+
+def test_dominant_frequency_of_a_path_graph():
+    # On a path, the end points carry the most weight of the highest and of low eigenvectors;
+    # every nu is a normalised eigenvalue in [0, 1].
+    n = 12
+    W = np.diag(np.ones(n - 1), 1)
+    W = W + W.T
+    L = np.diag(W.sum(1)) - W
+    lam, U = fourier_basis(L)
+    nu = dominant_frequency(lam, U, lam[-1])
+    assert np.all((nu >= 0.0) & (nu <= 1.0))
+    assert set(np.round(nu, 12)) <= set(np.round(lam / lam[-1], 12))
+
+
+def test_signal_frequency_argmax_and_weighted_centre():
+    r = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 3.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    nu, band = signal_frequency(r)
+    np.testing.assert_array_equal(band, [1, 3, 1])
+    np.testing.assert_allclose(nu, [0.125, (0.375 + 3 * 0.625) / 4, 0.0])
+
+
+def test_empty_and_single_vertex_graphs():
+    lam, U = fourier_basis(np.zeros((0, 0)))
+    assert lam.size == 0 and U.shape == (0, 0)
+    lam, U = fourier_basis(np.zeros((1, 1)))
+    np.testing.assert_allclose(lam, [0.0])
+    assert dominant_frequency(lam, U, 0.0)[0] == 0.0
