@@ -17,12 +17,20 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import invert_transform, rpy_transform
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
-from gft_odom.core.spectral.filter import SpectralFilter
+from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
-from gft_odom.errors import ConfigError
+from gft_odom.errors import ConfigError, SpectralError
 
 log = logging.getLogger(__name__)
+
+# A cloud whose thinnest principal axis has a standard deviation below this is flat (ground
+# only, a wall): ICP cannot observe the in-plane motion (x, y, yaw on ground) but converges
+# with a confident covariance and drags the map along, so the motion prediction is used
+# instead. Orchard scans measure >= 0.69 m on that axis whatever the band mask, bare sim
+# ground 0.01-0.04 m (docs/robustness.md).
+FLAT_CLOUD_STD_M = 0.05
+DEGENERATE_STATUS = 'fallback_degenerate'
 
 
 @dataclass
@@ -44,6 +52,15 @@ class FrameResult:
     @property
     def fell_back(self) -> bool:
         return self.status.startswith('fallback')
+
+
+def thinnest_axis_std_m(points_xyz: np.ndarray) -> float:
+    """Standard deviation of the points along their thinnest principal axis (inf if < 10)."""
+    if points_xyz.shape[0] < 10:
+        return float('inf')  # too few to judge: registration's min_points decides
+    centred = points_xyz - points_xyz.mean(axis=0)
+    scatter = centred.T @ centred / points_xyz.shape[0]
+    return float(np.sqrt(max(np.linalg.eigvalsh(scatter)[0], 0.0)))
 
 
 def base_to_sensor(config: GftOdomConfig) -> np.ndarray:
@@ -71,7 +88,10 @@ class OdometryPipeline:
     def use_filter(self) -> bool:
         return self.config.pipeline.use_spectral_filter
 
-    def register_frame(self, scan: Scan) -> FrameResult:
+    def register_frame(self, scan: Scan, freqs: PointFrequencies | None = None
+                       ) -> FrameResult:
+        """One scan through crop, filter, registration. `freqs`: frequencies of the
+        cropped scan computed earlier (the band search re-filters them with many masks)."""
         t0 = time.perf_counter()
         # 1. Range crop: drop the robot's own body and far, sparse returns.
         cropped = self._crop(scan)
@@ -80,12 +100,27 @@ class OdometryPipeline:
         nu = band = None
         kept = cropped
         if self.use_filter and len(cropped):
-            result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask)
-            kept = cropped.select(result.keep)
-            nu, band = result.nu[result.keep], result.band[result.keep]
+            if freqs is None:
+                result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask)
+                keep, nu_all, band_all = result.keep, result.nu, result.band
+            else:
+                keep = self._precomputed_keep(cropped, freqs)
+                nu_all, band_all = freqs.nu, freqs.band
+            kept = cropped.select(keep)
+            nu, band = nu_all[keep], band_all[keep]
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
-        reg = self.registration.register(kept.points_xyz, scan.stamp_ns, kept.time_offset_s)
+        flat_std_m = thinnest_axis_std_m(kept.points_xyz)
+        if flat_std_m < FLAT_CLOUD_STD_M:
+            # Registration with no points takes its own fallback path: prediction, inflated
+            # covariance, the reference map untouched.
+            log.debug('scan at %d ns is flat (thinnest axis std %.3f m): using the motion '
+                      'prediction', scan.stamp_ns, flat_std_m)
+            reg = self.registration.register(np.zeros((0, 3)), scan.stamp_ns)
+            reg.status = DEGENERATE_STATUS
+        else:
+            reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
+                                             kept.time_offset_s)
         t3 = time.perf_counter()
         # 4. Update: odom -> base_link, trajectory, counters.
         T_odom_base = self.T_base_sensor @ reg.T_world_sensor @ self.T_sensor_base
@@ -99,6 +134,12 @@ class OdometryPipeline:
             n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
             timings_s={'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
                        'pipeline': t3 - t0})
+
+    def _precomputed_keep(self, cropped: Scan, freqs: PointFrequencies) -> np.ndarray:
+        if len(freqs) != len(cropped):
+            raise SpectralError(f'precomputed frequencies cover {len(freqs)} points but the '
+                                f'cropped scan at {cropped.stamp_ns} ns has {len(cropped)}')
+        return self.spectral_filter.keep_mask(freqs, self.band_mask)
 
     def _crop(self, scan: Scan) -> Scan:
         cfg = self.config.pipeline

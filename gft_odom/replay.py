@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.metrics import TrajectoryEvaluator
 from gft_odom.core.trajectory import Trajectory
-from gft_odom.errors import GroundTruthError
+from gft_odom.errors import BagError, GftOdomError, GroundTruthError
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.io.tum import write_tum
@@ -90,6 +91,10 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             if progress is not None:
                 progress(i + 1, total)
         skipped = getattr(reader, 'skipped', 0)
+    if not statuses:
+        # Nothing to evaluate or write: an empty results folder would look like a success.
+        raise BagError(f'no decodable scan on {topic} in {", ".join(map(str, bag_paths))} '
+                       f'({skipped} message(s) skipped as malformed)')
     replay = ReplayResult(
         sensor_trajectory=pipeline.sensor_trajectory(),
         base_trajectory=pipeline.base_trajectory(),
@@ -138,6 +143,8 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
         'points_kept_fraction': (float(kept.sum() / max(replay.points_in[valid].sum(), 1))
                                  if kept.size else 0.0),
         'fallbacks': int(sum(s.startswith('fallback') for s in replay.statuses)),
+        # Why: fallback_too_few_points / _low_fitness / _diverged / _degenerate (flat cloud).
+        'status_counts': {s: replay.statuses.count(s) for s in sorted(set(replay.statuses))},
         'skipped_messages': int(replay.skipped_messages),
     }
     for stage, values in replay.stage_s.items():
@@ -171,25 +178,55 @@ def write_json(path: Path, data: dict) -> None:
 
 def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Path,
                   figures: bool = True) -> dict[str, Path]:
-    """The results folder: TUM poses, metrics.json, config.yaml and (optionally) PNGs."""
+    """The results folder: TUM poses, metrics.json, config.yaml and (optionally) PNGs.
+
+    All-or-nothing: every file is first written into a sibling `<out>.partial-XXXX` folder.
+    A new `out` is that folder renamed (one atomic step); into an existing `out` (which may
+    hold other files) each file is moved with an atomic rename, `metrics.json` last, so a
+    complete metrics.json means a complete run. On any failure the partial folder is removed
+    and `out` is left as it was; a hard kill can leave only the `.partial-XXXX` folder.
+    """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {
-        'trajectory': out / 'trajectory_tum.txt',
-        'sensor_trajectory': out / 'trajectory_sensor_tum.txt',
-        'metrics': out / 'metrics.json',
-        'config': out / 'config.yaml',
+    names = {
+        'trajectory': 'trajectory_tum.txt',
+        'sensor_trajectory': 'trajectory_sensor_tum.txt',
+        'config': 'config.yaml',
+        'trajectory_png': 'trajectory.png',
+        'map_png': 'map.png',
+        'metrics': 'metrics.json',  # last: its presence marks a complete folder
     }
-    write_tum(paths['trajectory'], replay.base_trajectory)
-    write_tum(paths['sensor_trajectory'], replay.sensor_trajectory)
-    write_json(paths['metrics'], replay.metrics)
-    write_params_file(paths['config'], config,
-                      header='Effective configuration of this run (ROS params-file format).')
-    if figures:
-        from gft_odom.figures import plot_map, plot_trajectory
-        estimate = estimate_for_ground_truth(replay, config)
-        paths['trajectory_png'] = plot_trajectory(out / 'trajectory.png', estimate,
-                                                  replay.ground_truth, replay.metrics)
-        paths['map_png'] = plot_map(out / 'map.png', replay.map_points_world, replay.map_nu,
-                                    replay.sensor_trajectory)
-    return paths
+    if not figures:
+        del names['trajectory_png'], names['map_png']
+    try:
+        if out.exists() and not out.is_dir():
+            raise GftOdomError(f'results folder {out} exists and is not a folder')
+        out.parent.mkdir(parents=True, exist_ok=True)
+        partial = Path(tempfile.mkdtemp(prefix=f'{out.name}.partial-', dir=out.parent))
+    except OSError as exc:
+        raise GftOdomError(f'cannot create results folder {out}: {exc}') from None
+    try:
+        tmp = {key: partial / name for key, name in names.items()}
+        write_tum(tmp['trajectory'], replay.base_trajectory)
+        write_tum(tmp['sensor_trajectory'], replay.sensor_trajectory)
+        write_params_file(tmp['config'], config,
+                          header='Effective configuration of this run (ROS params-file format).')
+        if figures:
+            from gft_odom.figures import plot_map, plot_trajectory
+            estimate = estimate_for_ground_truth(replay, config)
+            plot_trajectory(tmp['trajectory_png'], estimate, replay.ground_truth, replay.metrics)
+            plot_map(tmp['map_png'], replay.map_points_world, replay.map_nu,
+                     replay.sensor_trajectory)
+        write_json(tmp['metrics'], replay.metrics)
+        if out.exists():
+            for key in names:  # dict order: metrics.json last
+                os.replace(tmp[key], out / names[key])
+            partial.rmdir()
+        else:
+            os.rename(partial, out)
+    except OSError as exc:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise GftOdomError(f'cannot write results to {out}: {exc}') from None
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return {key: out / name for key, name in names.items()}

@@ -55,6 +55,9 @@ class FilterOdomNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.counters = collections.Counter()
+        # Rate limit per kind of problem (rclpy's throttle is per call site, so one kind would
+        # silence the others): the first of each kind is always logged.
+        self._last_warned_s: dict[str, float] = {}
         self.latencies_s: collections.deque[float] = collections.deque(maxlen=600)
         self.path = Path()
         self.path_poses: collections.deque = collections.deque(
@@ -110,9 +113,14 @@ class FilterOdomNode(Node):
     # -- per scan --------------------------------------------------------------------------
 
     def _warn(self, kind: str, text: str) -> None:
+        """Count the problem; log it unless the same kind was logged < WARN_PERIOD_S ago."""
         self.counters[kind] += 1
-        self.get_logger().warning(f'{text} ({kind} so far: {self.counters[kind]})',
-                                  throttle_duration_sec=WARN_PERIOD_S)
+        now_s = time.monotonic()
+        last_s = self._last_warned_s.get(kind)
+        if last_s is not None and now_s - last_s < WARN_PERIOD_S:
+            return
+        self._last_warned_s[kind] = now_s
+        self.get_logger().warning(f'{text} ({kind} so far: {self.counters[kind]})')
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         t0 = time.perf_counter()
@@ -132,6 +140,9 @@ class FilterOdomNode(Node):
         except GftOdomError as exc:
             self._warn('failed', f'scan at {scan.stamp_ns} ns not processed: {exc}')
             return
+        except Exception as exc:  # an exception in a callback would end rclpy.spin
+            self._warn('failed', f'scan at {scan.stamp_ns} ns not processed (bug?): {exc!r}')
+            return
         self._publish(result, msg.header)
         latency_s = time.perf_counter() - t0
         self.latencies_s.append(latency_s)
@@ -146,7 +157,13 @@ class FilterOdomNode(Node):
     def _accept(self, scan) -> bool:
         """Drop scans that would corrupt the odometry or that arrive too late to matter."""
         if len(scan) == 0:
-            self._warn('empty', f'skipping empty scan at {scan.stamp_ns} ns')
+            self._warn('empty', f'skipping empty scan at {scan.stamp_ns} ns (no finite point)')
+            return False
+        extent_m = np.ptp(scan.points_xyz, axis=0).max()
+        if not extent_m > 0.0:
+            # Every point in one spot: a driver glitch, not geometry (ICP would see one voxel).
+            self._warn('degenerate', f'skipping scan at {scan.stamp_ns} ns: all {len(scan)} '
+                       f'points are identical')
             return False
         if self.last_stamp_ns is not None and scan.stamp_ns <= self.last_stamp_ns:
             self._warn('out_of_order', f'skipping scan stamped {scan.stamp_ns} ns, not after '
@@ -192,11 +209,15 @@ class FilterOdomNode(Node):
                 columns['band'] = result.band.astype(np.uint8)
             self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), stamp_ns, header.frame_id))
 
-    def _log_summary(self) -> None:
+    def _log_summary(self, final: bool = False) -> None:
+        """Latency and the count of every kind of problem (all of them at shutdown)."""
+        counts = ', '.join(f'{k}={v}' for k, v in sorted(self.counters.items()))
+        if final:
+            self.get_logger().info(f'final counts: {counts or "nothing received"}')
+            return
         if not self.latencies_s:
             return
         lat_ms = 1e3 * np.asarray(self.latencies_s)
-        counts = ', '.join(f'{k}={v}' for k, v in sorted(self.counters.items()))
         self.get_logger().info(f'latency median {np.median(lat_ms):.1f} ms, p95 '
                                f'{np.percentile(lat_ms, 95):.1f} ms over the last '
                                f'{lat_ms.size} scans; {counts}')
@@ -216,6 +237,7 @@ def main(args=None) -> None:
         raise SystemExit(2) from None
     finally:
         if node is not None:
+            node._log_summary(final=True)
             node.destroy_node()
         rclpy.try_shutdown()
 

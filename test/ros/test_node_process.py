@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,32 +15,7 @@ from gft_odom.tools.through_node import replay_through_node
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
-REPO = Path(__file__).resolve().parents[2]
 N_SCANS = 12
-
-
-@pytest.fixture(scope='module')
-def installed_node(tmp_path_factory):
-    """colcon build of this package into a fresh workspace; the script `ros2 run` would start."""
-    ws = tmp_path_factory.mktemp('ws')
-    colcon = Path(sys.executable).with_name('colcon')
-    proc = subprocess.run(
-        [str(colcon), '--log-base', str(ws / 'log'), 'build', '--base-paths', str(REPO),
-         '--build-base', str(ws / 'build'), '--install-base', str(ws / 'install')],
-        cwd=ws, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    prefix = ws / 'install' / 'gft_odom'
-    exe = prefix / 'lib' / 'gft_odom' / 'filter_odom_node'
-    assert exe.is_file()
-    site = next((prefix / 'lib').glob('python3*/site-packages'))
-    assert (site / 'gft_odom' / 'ros' / 'node.py').is_file()
-    assert (prefix / 'share' / 'gft_odom' / 'config' / 'filter_odom.yaml').is_file()
-    assert (prefix / 'share' / 'gft_odom' / 'launch' / 'filter_odom.launch.py').is_file()
-    env = dict(os.environ)
-    # What `source install/setup.bash` does for this package.
-    env['PYTHONPATH'] = os.pathsep.join([str(site), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
-    env['AMENT_PREFIX_PATH'] = str(prefix)
-    return exe, env
 
 
 def test_node_trajectory_equals_in_process_replay(installed_node, orchard_bag, ros_env,

@@ -1,0 +1,239 @@
+"""Soak test: the colcon-built filter_odom_node fed at 10 Hz for N minutes; RSS and latency.
+
+A simulated drive is played forward then backward, again and again (the robot drives up the
+row and back, so consecutive scans always overlap), stamped with the wall clock at 10 Hz, like
+a sensor. Every second the node's RSS is read from /proc/<pid>/status; the latency of a scan
+is publish -> its odometry received. A scan the node never answers is counted as dropped (it
+was lost by best-effort DDS, dropped as stale, or overwritten in the queue while the node was
+busy). Writes benchmarks/results/soak_node.{json,md,png} and docs/soak_node.png.
+
+    .venv/bin/python benchmarks/soak_node.py --minutes 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+NODE = '/filter_odom_node'
+TOPIC = '/velodyne_points'
+
+
+def build_node(ws: Path) -> tuple[Path, dict]:
+    """colcon build into `ws`; the executable `ros2 run` would start and its environment."""
+    colcon = Path(sys.executable).with_name('colcon')
+    ws.mkdir(parents=True, exist_ok=True)
+    proc = subprocess.run(
+        [str(colcon), '--log-base', str(ws / 'log'), 'build', '--base-paths', str(REPO),
+         '--build-base', str(ws / 'build'), '--install-base', str(ws / 'install')],
+        cwd=ws, capture_output=True, text=True, timeout=600)
+    if proc.returncode != 0:
+        raise SystemExit('colcon build failed:\n' + proc.stdout[-3000:] + proc.stderr[-3000:])
+    prefix = ws / 'install' / 'gft_odom'
+    site = next((prefix / 'lib').glob('python3*/site-packages'))
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join([str(site), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
+    env['AMENT_PREFIX_PATH'] = str(prefix)
+    return prefix / 'lib' / 'gft_odom' / 'filter_odom_node', env
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        text = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return None
+    match = re.search(r'VmRSS:\s+(\d+) kB', text)
+    return int(match.group(1)) / 1024.0 if match else None
+
+
+def ping_pong(n: int):
+    """0, 1, ..., n-1, n-2, ..., 1, 0, 1, ... forever."""
+    order = list(range(n)) + list(range(n - 2, 0, -1))
+    while True:
+        yield from order
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--minutes', type=float, default=10.0)
+    parser.add_argument('--rate-hz', type=float, default=10.0)
+    parser.add_argument('--scans', type=int, default=40, help='scans in the simulated drive')
+    parser.add_argument('--azimuth-step-deg', type=float, default=0.4,
+                        help='0.2 is the real VLP-16; 0.4 halves the points per scan')
+    parser.add_argument('--out', default=str(REPO / 'benchmarks' / 'results'))
+    parser.add_argument('--docs', default=str(REPO / 'docs'))
+    args = parser.parse_args(argv)
+
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from gft_odom.io.bags import ScanBagReader
+    from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
+    from gft_odom.sim.simulator import SimConfig
+    from gft_odom.sim.writer import simulate_to_bag
+    from gft_odom.tools.through_node import ros_message_from_bag
+
+    work = Path(tempfile.mkdtemp(prefix='gft_soak_'))
+    print(f'simulating {args.scans} scans, building the node in {work} ...', flush=True)
+    sim = simulate_to_bag(work / 'sim', n_scans=args.scans, seed=101,
+                          config=SimConfig(azimuth_step_deg=args.azimuth_step_deg),
+                          topdown_png=False)
+    with ScanBagReader([sim.bag_path]) as reader:
+        messages = [ros_message_from_bag(raw, PointCloud2, PointField)
+                    for _, raw in reader.iter_messages()]
+    points_per_scan = float(np.mean([m.width * m.height for m in messages]))
+    exe, env = build_node(work / 'ws')
+    domain_id = random.randint(100, 200)
+    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID=str(domain_id))
+    node_log = work / 'node.log'
+    with open(node_log, 'w') as log_file:
+        proc = subprocess.Popen([str(exe), '--ros-args', '-r', f'points:={TOPIC}'], env=env,
+                                stdout=log_file, stderr=subprocess.STDOUT)
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node('soak_feeder', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    answered: dict[int, float] = {}
+    node.create_subscription(
+        Odometry, f'{NODE}/odometry',
+        lambda m: answered.setdefault(stamp_to_ns(m.header.stamp), time.monotonic()),
+        QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+    pub = node.create_publisher(PointCloud2, TOPIC,
+                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+
+    def spin_for(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=max(0.0, min(0.005, end - time.monotonic())))
+
+    deadline = time.monotonic() + 60.0
+    while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/odometry')):
+        if time.monotonic() > deadline or proc.poll() is not None:
+            raise SystemExit(f'node did not come up; log: {node_log}')
+        spin_for(0.05)
+    spin_for(2.0)
+
+    period_s = 1.0 / args.rate_hz
+    sent: dict[int, float] = {}
+    rss_t, rss_v = [], []
+    order = ping_pong(len(messages))
+    t_start = time.monotonic()
+    t_end = t_start + 60.0 * args.minutes
+    next_send = next_rss = t_start
+    print(f'soaking for {args.minutes} min at {args.rate_hz} Hz '
+          f'({points_per_scan:.0f} points/scan) ...', flush=True)
+    try:
+        while time.monotonic() < t_end:
+            now = time.monotonic()
+            if now >= next_rss:
+                value = rss_mb(proc.pid)
+                if value is None:
+                    raise SystemExit(f'node exited; log: {node_log}')
+                rss_t.append(now - t_start)
+                rss_v.append(value)
+                next_rss += 1.0
+            if now >= next_send:
+                msg = messages[next(order)]
+                stamp_ns = time.time_ns()
+                msg.header.stamp = ns_to_stamp(stamp_ns)
+                sent[stamp_ns] = time.monotonic()
+                pub.publish(msg)
+                next_send += period_s
+            spin_for(min(next_send, next_rss) - time.monotonic())
+        spin_for(3.0)  # the answers still in flight
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    stamps = np.array(sorted(sent))
+    sent_t = np.array([sent[s] - t_start for s in stamps])
+    latency_ms = np.array([1e3 * (answered[s] - sent[s]) if s in answered else np.nan
+                           for s in stamps])
+    ok = np.isfinite(latency_ms)
+    rss_t, rss_v = np.array(rss_t), np.array(rss_v)
+    warm = rss_t >= 0.2 * rss_t[-1]  # after the first 20 %: caches, map and Path filled
+    slope = float(np.polyfit(rss_t[warm] / 60.0, rss_v[warm], 1)[0]) if warm.sum() > 2 else None
+    log_text = node_log.read_text()
+    final = re.search(r'final counts: (.*)', log_text)
+    figures = {
+        'minutes': args.minutes, 'rate_hz': args.rate_hz,
+        'azimuth_step_deg': args.azimuth_step_deg, 'points_per_scan_mean': points_per_scan,
+        'scans_sent': int(stamps.size), 'scans_answered': int(ok.sum()),
+        'scans_dropped': int((~ok).sum()),
+        'dropped_fraction': float((~ok).mean()) if stamps.size else None,
+        'latency_median_ms': float(np.median(latency_ms[ok])) if ok.any() else None,
+        'latency_p95_ms': float(np.percentile(latency_ms[ok], 95)) if ok.any() else None,
+        'latency_max_ms': float(np.max(latency_ms[ok])) if ok.any() else None,
+        'rss_start_mb': float(rss_v[0]), 'rss_end_mb': float(rss_v[-1]),
+        'rss_max_mb': float(rss_v.max()),
+        'rss_slope_after_warmup_mb_per_min': slope,
+        'node_exit_code': proc.returncode,
+        'node_final_counts': final.group(1) if final else None,
+        'tracebacks_in_node_log': log_text.count('Traceback'),
+    }
+    out, docs = Path(args.out), Path(args.docs)
+    out.mkdir(parents=True, exist_ok=True)
+    docs.mkdir(parents=True, exist_ok=True)
+    (out / 'soak_node.json').write_text(json.dumps(figures, indent=2) + '\n')
+    (out / 'soak_node.md').write_text(
+        '| figure | value |\n|---|---|\n'
+        + ''.join(f'| {k} | {v:.3g} |\n' if isinstance(v, float) else f'| {k} | {v} |\n'
+                  for k, v in figures.items()))
+    _plot(out / 'soak_node.png', rss_t, rss_v, sent_t, latency_ms, figures)
+    shutil.copyfile(out / 'soak_node.png', docs / 'soak_node.png')
+    print(f'node log: {node_log}')
+    print(json.dumps(figures, indent=2))
+    return 0
+
+
+def _plot(path: Path, rss_t, rss_v, sent_t, latency_ms, figures) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    ax1.plot(rss_t / 60.0, rss_v, color='tab:blue')
+    ax1.set_ylabel('node RSS [MB]')
+    ax1.set_title(f'filter_odom_node soak: {figures["minutes"]:g} min at '
+                  f'{figures["rate_hz"]:g} Hz, {figures["points_per_scan_mean"]:.0f} points/scan')
+    ax1.grid(alpha=0.3)
+    ok = np.isfinite(latency_ms)
+    ax2.plot(sent_t[ok] / 60.0, latency_ms[ok], '.', ms=2, color='tab:red', label='answered')
+    if (~ok).any():
+        ax2.plot(sent_t[~ok] / 60.0, np.zeros((~ok).sum()), '|', color='0.4', ms=6,
+                 label=f'dropped ({(~ok).sum()})')
+    ax2.set_ylabel('publish -> odometry [ms]')
+    ax2.set_xlabel('time [min]')
+    ax2.grid(alpha=0.3)
+    ax2.legend(loc='upper right')
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
