@@ -29,7 +29,9 @@ setup(
         'matplotlib',
     ],
     extras_require={
-        'test': ['pytest', 'hypothesis', 'evo', 'ruff'],
+        # kiss-icp: the peer the benchmarks measure against; ray: band search on a cluster.
+        'test': ['pytest', 'hypothesis', 'evo', 'ruff', 'kiss-icp>=1.3.0', 'ray>=2.9'],
+        'ray': ['ray>=2.9'],
     },
     zip_safe=True,
     maintainer='gft_odom developers',

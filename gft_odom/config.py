@@ -63,6 +63,10 @@ class NodeConfig:
     path_max_length: int = 5000
     # A scan older than this when its turn comes (processing lagged) is dropped and counted.
     max_scan_age_s: float = 0.5
+    # Depth of the sensor-data subscription. 1 = always the newest sweep: a lagging node skips
+    # sweeps instead of working through a queue of old ones (latency stays one processing
+    # time); the skipped sweeps are counted from the gaps between stamps (`missed`).
+    input_queue_depth: int = 1
 
     def validate(self) -> None:
         for name in ('odom_frame', 'base_frame'):
@@ -80,6 +84,8 @@ class NodeConfig:
             raise ConfigError(f'path_max_length must be >= 1, got {self.path_max_length}')
         if not self.max_scan_age_s > 0.0:
             raise ConfigError(f'max_scan_age_s must be > 0, got {self.max_scan_age_s}')
+        if not 1 <= self.input_queue_depth <= 100:
+            raise ConfigError(f'input_queue_depth must be in 1..100, got {self.input_queue_depth}')
 
 
 @dataclass(frozen=True)

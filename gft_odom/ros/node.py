@@ -30,7 +30,8 @@ from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg
 NODE_NAME = 'filter_odom_node'
 # Sections whose values are only read when the pipeline starts (a change needs a restart).
 STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame', 'evaluation.',
-                         'node.base_to_sensor', 'node.publish_tf', 'ground_truth.')
+                         'node.base_to_sensor', 'node.publish_tf', 'ground_truth.',
+                         'node.input_queue_depth')
 WARN_PERIOD_S = 5.0
 SUMMARY_PERIOD_S = 10.0
 
@@ -63,6 +64,7 @@ class FilterOdomNode(Node):
         self.path_poses: collections.deque = collections.deque(
             maxlen=self.config.node.path_max_length)
         self.last_stamp_ns: int | None = None
+        self.last_received_stamp_ns: int | None = None
         self.last_frame_id: str | None = None
 
         self.cloud_pub = self.create_publisher(PointCloud2, '~/filtered_points',
@@ -70,7 +72,11 @@ class FilterOdomNode(Node):
         self.odom_pub = self.create_publisher(Odometry, '~/odometry', QoSProfile(depth=50))
         self.path_pub = self.create_publisher(Path, '~/path', QoSProfile(depth=5))
         self.tf_broadcaster = self._make_tf_broadcaster()
-        self.create_subscription(PointCloud2, 'points', self._on_cloud, qos_profile_sensor_data)
+        input_qos = QoSProfile(depth=self.config.node.input_queue_depth,
+                               reliability=qos_profile_sensor_data.reliability,
+                               durability=qos_profile_sensor_data.durability,
+                               history=qos_profile_sensor_data.history)
+        self.create_subscription(PointCloud2, 'points', self._on_cloud, input_qos)
         self.create_timer(SUMMARY_PERIOD_S, self._log_summary)
         self.get_logger().info(
             f'ready: filter {"on" if self.pipeline.use_filter else "off"} '
@@ -154,6 +160,19 @@ class FilterOdomNode(Node):
             f'scan {scan.stamp_ns}: decode {1e3 * (t_decoded - t0):.1f} ms, '
             + ', '.join(f'{k} {1e3 * v:.1f} ms' for k, v in result.timings_s.items()))
 
+    def _count_missed(self, stamp_ns: int) -> None:
+        """Sweeps that never reached this callback (queue overwritten, link loss)."""
+        last = self.last_received_stamp_ns
+        if last is not None and stamp_ns > last:
+            period_ns = self.config.registration.scan_period_s * 1e9
+            missed = int(round((stamp_ns - last) / period_ns)) - 1
+            if missed > 0:
+                self._warn('missed', f'{missed} sweep(s) never arrived before the one at '
+                           f'{stamp_ns} ns (processing slower than the sensor, or lost)')
+                self.counters['missed'] += missed - 1
+        if last is None or stamp_ns > last:
+            self.last_received_stamp_ns = stamp_ns
+
     def _accept(self, scan) -> bool:
         """Drop scans that would corrupt the odometry or that arrive too late to matter."""
         if len(scan) == 0:
@@ -165,6 +184,7 @@ class FilterOdomNode(Node):
             self._warn('degenerate', f'skipping scan at {scan.stamp_ns} ns: all {len(scan)} '
                        f'points are identical')
             return False
+        self._count_missed(scan.stamp_ns)
         if self.last_stamp_ns is not None and scan.stamp_ns <= self.last_stamp_ns:
             self._warn('out_of_order', f'skipping scan stamped {scan.stamp_ns} ns, not after '
                        f'the previous one ({self.last_stamp_ns} ns)')

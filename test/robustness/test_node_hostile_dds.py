@@ -60,7 +60,8 @@ class NodeHarness:
         self.log_path = log_path
         with open(log_path, 'w') as log_file:
             self.proc = subprocess.Popen(
-                [str(exe), '--ros-args', '-p', 'use_sim_time:=true', '-r', f'points:={TOPIC}'],
+                [str(exe), '--ros-args', '-p', 'use_sim_time:=true',
+                 '-p', 'node.input_queue_depth:=10', '-r', f'points:={TOPIC}'],
                 env=env, stdout=log_file, stderr=subprocess.STDOUT)
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
