@@ -104,7 +104,10 @@ class GftOdomConfig:
             try:
                 getattr(self, section.name).validate()
             except ConfigError as exc:
-                raise ConfigError(f'{section.name}: {exc}') from None
+                text = str(exc)
+                if not text.startswith(f'{section.name}.'):
+                    text = f'{section.name}: {text}'
+                raise ConfigError(text) from None
 
 
 def _field_types(cls) -> dict[str, Any]:

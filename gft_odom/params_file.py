@@ -121,3 +121,16 @@ def write_params_file(path: str | Path, config: GftOdomConfig, header: str = '')
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def packaged_params_file(name: str) -> Path:
+    """A params file shipped with the package: `share/gft_odom/config/` when installed with
+    colcon, else the source tree's `config/` (editable installs, a checkout)."""
+    candidates = [Path(__file__).resolve().parents[1] / 'config' / name]
+    for prefix in filter(None, os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)):
+        candidates.insert(0, Path(prefix) / 'share' / 'gft_odom' / 'config' / name)
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ConfigError(f'params file {name!r} not found (looked in '
+                      f'{", ".join(str(p.parent) for p in candidates)})')

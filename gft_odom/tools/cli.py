@@ -34,12 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
     for name in SUBCOMMAND_MODULES:
-        try:
-            module = importlib.import_module(f'gft_odom.tools.cmd_{name}')
-        except ModuleNotFoundError as exc:
-            if exc.name != f'gft_odom.tools.cmd_{name}':
-                raise
-            continue
+        module = importlib.import_module(f'gft_odom.tools.cmd_{name}')
         p = module.add_parser(sub)
         p.set_defaults(_run=module.run)
     return parser
