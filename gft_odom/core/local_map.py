@@ -40,10 +40,9 @@ def to_cloud(points_xyz: np.ndarray) -> o3d.geometry.PointCloud:
 class LocalMap:
     """Sliding window of keyframes in the world frame, served as one open3d cloud."""
 
-    def __init__(self, voxel_size_m: float = 0.3, max_range_m: float = 40.0,
-                 max_points: int = 40000, max_keyframes: int = 15,
-                 keyframe_distance_m: float = 1.0, keyframe_rotation_rad: float = 0.2,
-                 normal_neighbours: int = 15, with_normals: bool = True,
+    def __init__(self, voxel_size_m: float, max_range_m: float, max_points: int,
+                 max_keyframes: int, keyframe_distance_m: float, keyframe_rotation_rad: float,
+                 normal_neighbours: int, with_normals: bool = True,
                  with_covariances: bool = False):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m

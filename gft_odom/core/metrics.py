@@ -27,6 +27,10 @@ logger = logging.getLogger(__name__)
 ATE_MODES = ('se3', 'sim3', 'position')
 MATCH_METHODS = ('nearest', 'interpolate')
 DEFAULT_LENGTHS_M = (5.0, 10.0, 20.0, 50.0)
+DEFAULT_MODE = 'position'
+DEFAULT_MAX_DIFF_S = 0.05
+DEFAULT_MATCH = 'nearest'
+DEFAULT_MAX_GAP_S = 1.0
 
 # Umeyama needs a spread in two directions; below this ratio of the second to the first singular
 # value of the centred points they are treated as collinear (the rotation about the line is
@@ -40,13 +44,13 @@ class MetricsConfig:
     """Evaluation settings shared by the offline tools (replay, band search, benchmarks)."""
 
     # 'position' by default: the CitrusFarm ground truth is a GPS antenna track, no orientation.
-    mode: str = 'position'
+    mode: str = DEFAULT_MODE
     # Half a LiDAR period at 10 Hz: a ground-truth stamp further away belongs to another scan.
-    max_diff_s: float = 0.05
+    max_diff_s: float = DEFAULT_MAX_DIFF_S
     # 'interpolate' resamples a lower-rate GPS track linearly at the estimate's stamps.
-    match: str = 'nearest'
+    match: str = DEFAULT_MATCH
     # With 'interpolate', no position is invented across a ground-truth gap longer than this.
-    max_gap_s: float = 1.0
+    max_gap_s: float = DEFAULT_MAX_GAP_S
     # KITTI uses 100..800 m on cars; orchard rows are ~100 m, so shorter segments.
     lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M
 
@@ -54,8 +58,9 @@ class MetricsConfig:
         _check_args(self.mode, self.max_diff_s, self.match, self.max_gap_s, self.lengths_m)
 
 
-def _check_args(mode: str = 'position', max_diff_s: float = 0.05, match: str = 'nearest',
-                max_gap_s: float = 1.0, lengths_m=DEFAULT_LENGTHS_M) -> None:
+def _check_args(mode: str = DEFAULT_MODE, max_diff_s: float = DEFAULT_MAX_DIFF_S,
+                match: str = DEFAULT_MATCH, max_gap_s: float = DEFAULT_MAX_GAP_S,
+                lengths_m=DEFAULT_LENGTHS_M) -> None:
     """Raise ConfigError naming the first invalid evaluation argument."""
     if mode not in ATE_MODES:
         raise ConfigError(f'metrics mode must be one of {ATE_MODES}, got {mode!r}')
@@ -86,7 +91,7 @@ def _time_range(traj: Trajectory) -> str:
 # --- association -----------------------------------------------------------------------------
 
 def associate(est: Trajectory, ref: Trajectory,
-              max_diff_s: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+              max_diff_s: float = DEFAULT_MAX_DIFF_S) -> tuple[np.ndarray, np.ndarray]:
     """Pair each estimate stamp with the nearest reference stamp within `max_diff_s`.
 
     Each reference pose is used at most once (the estimate closest in time keeps it, the
@@ -121,7 +126,7 @@ def associate(est: Trajectory, ref: Trajectory,
 
 
 def interpolate_positions(ref: Trajectory, stamps_ns: np.ndarray,
-                          max_gap_s: float = 1.0) -> np.ndarray:
+                          max_gap_s: float = DEFAULT_MAX_GAP_S) -> np.ndarray:
     """Reference positions linearly interpolated at `stamps_ns`, (M, 3).
 
     For a ground truth at another rate than the scans (GPS at 1-5 Hz). Rows are NaN outside the
@@ -294,8 +299,9 @@ def _ate_from_matched(m: _Matched, mode: str) -> AteResult:
         errors_m=errors, est_idx=m.est_idx)
 
 
-def ate(est: Trajectory, ref: Trajectory, mode: str = 'se3', max_diff_s: float = 0.05,
-        match: str = 'nearest', max_gap_s: float = 1.0) -> AteResult:
+def ate(est: Trajectory, ref: Trajectory, mode: str = 'se3',
+        max_diff_s: float = DEFAULT_MAX_DIFF_S,
+        match: str = DEFAULT_MATCH, max_gap_s: float = DEFAULT_MAX_GAP_S) -> AteResult:
     """Absolute trajectory error of `est` against `ref` after Umeyama alignment.
 
     The alignment uses the matched positions only (rigid for 'se3' and 'position', with scale
@@ -307,8 +313,8 @@ def ate(est: Trajectory, ref: Trajectory, mode: str = 'se3', max_diff_s: float =
     return _ate_from_matched(m, mode)
 
 
-def paper_mse(est: Trajectory, ref: Trajectory, max_diff_s: float = 0.05,
-              match: str = 'nearest', max_gap_s: float = 1.0) -> float:
+def paper_mse(est: Trajectory, ref: Trajectory, max_diff_s: float = DEFAULT_MAX_DIFF_S,
+              match: str = DEFAULT_MATCH, max_gap_s: float = DEFAULT_MAX_GAP_S) -> float:
     """The paper's "MSE": mean squared position error in m^2 after a rigid alignment.
 
     Alignment: rigid Umeyama (rotation + translation, no scale) on the matched positions, as
@@ -367,8 +373,8 @@ def _aligned_positions(m: _Matched) -> np.ndarray:
 
 
 def rpe_segments(est: Trajectory, ref: Trajectory, length_m: float,
-                 use_orientation: bool = False, max_diff_s: float = 0.05,
-                 match: str = 'nearest', max_gap_s: float = 1.0) -> RpeSegments:
+                 use_orientation: bool = False, max_diff_s: float = DEFAULT_MAX_DIFF_S,
+                 match: str = DEFAULT_MATCH, max_gap_s: float = DEFAULT_MAX_GAP_S) -> RpeSegments:
     """All segments of one length with their errors (see `rpe_drift` for the definitions)."""
     _check_args(max_diff_s=max_diff_s, match=match, max_gap_s=max_gap_s, lengths_m=(length_m,))
     m = _match(est, ref, max_diff_s, match, max_gap_s, need_orientation=use_orientation)
@@ -394,8 +400,9 @@ def _drift_from_matched(m: _Matched, lengths_m, use_orientation: bool) -> dict:
 
 
 def rpe_drift(est: Trajectory, ref: Trajectory, lengths_m=DEFAULT_LENGTHS_M,
-              use_orientation: bool = False, max_diff_s: float = 0.05, match: str = 'nearest',
-              max_gap_s: float = 1.0) -> dict:
+              use_orientation: bool = False, max_diff_s: float = DEFAULT_MAX_DIFF_S,
+              match: str = DEFAULT_MATCH,
+              max_gap_s: float = DEFAULT_MAX_GAP_S) -> dict:
     """KITTI-style drift: relative translation error over travelled distance, in %.
 
     Segments: for every matched start frame i (step 1) and each length L, j is the first frame
@@ -459,9 +466,9 @@ class TrajectoryMetrics:
 class TrajectoryEvaluator:
     """ATE, paper MSE and RPE drift from one association and one alignment."""
 
-    def __init__(self, mode: str = 'position', max_diff_s: float = 0.05,
-                 lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M, match: str = 'nearest',
-                 max_gap_s: float = 1.0) -> None:
+    def __init__(self, mode: str = DEFAULT_MODE, max_diff_s: float = DEFAULT_MAX_DIFF_S,
+                 lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M, match: str = DEFAULT_MATCH,
+                 max_gap_s: float = DEFAULT_MAX_GAP_S) -> None:
         _check_args(mode, max_diff_s, match, max_gap_s, lengths_m)
         self.mode = mode
         self.max_diff_s = float(max_diff_s)
@@ -499,9 +506,10 @@ class TrajectoryEvaluator:
         return self.metrics(est, ref).as_dict()
 
 
-def evaluate(est: Trajectory, ref: Trajectory, mode: str = 'position',
-             lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M, max_diff_s: float = 0.05,
-             match: str = 'nearest', max_gap_s: float = 1.0) -> dict:
+def evaluate(est: Trajectory, ref: Trajectory, mode: str = DEFAULT_MODE,
+             lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M,
+             max_diff_s: float = DEFAULT_MAX_DIFF_S,
+             match: str = DEFAULT_MATCH, max_gap_s: float = DEFAULT_MAX_GAP_S) -> dict:
     """JSON-friendly flat dict: ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, ate_std_m,
     paper_mse_m2, rpe_drift_pct, n_matched, path_length_m (reference path over the matched
     span), mode, scale, rotation_rmse_deg and `rpe_drift_pct_<L>m` / `rpe_count_<L>m` per

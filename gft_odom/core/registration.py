@@ -189,23 +189,47 @@ def _kernel(name: str, scale_m: float):
     return o3d_reg.L2Loss()
 
 
+_DEFAULTS = RegistrationConfig()
+
+
+def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
+    """The local map of default mode, from the `map_*` / keyframe fields."""
+    return LocalMap(
+        voxel_size_m=cfg.map_voxel_size_m, max_range_m=cfg.map_max_range_m,
+        max_points=cfg.map_max_points, max_keyframes=cfg.map_keyframes,
+        keyframe_distance_m=cfg.keyframe_distance_m,
+        keyframe_rotation_rad=cfg.keyframe_rotation_rad,
+        normal_neighbours=cfg.normal_neighbours)
+
+
 class ScanRegistration:
     """Registers consecutive scans and keeps the odometry state (pose, velocity, local map)."""
 
-    def __init__(self, mode: str = 'default', estimation: str = 'auto',
-                 voxel_size_m: float = 0.4, max_correspondence_distance_m: float = 1.0,
-                 max_iterations: int = 30, convergence_relative: float = 1e-4,
-                 robust_kernel: str = 'tukey', robust_kernel_scale_m: float = 0.3,
-                 gicp_epsilon: float = 1e-3, local_map: LocalMap | None = None,
-                 min_points: int = 100, min_fitness: float = 0.3,
-                 max_translation_jump_m: float = 0.5, max_rotation_jump_rad: float = 0.25,
-                 deskew: bool = False, deskew_planar: bool = True,
-                 deskew_velocity_window: int = 5,
-                 scan_period_s: float = 0.1,
-                 azimuth_stamp_at_sweep_end: bool = False,
-                 output_deskewed_points: bool = False,
-                 min_std_m: float = 0.005, min_std_rad: float = 0.001,
-                 fallback_std_m: float = 1.0, fallback_std_rad: float = 0.3):
+    def __init__(self,
+                 mode: str = _DEFAULTS.mode,
+                 estimation: str = _DEFAULTS.estimation,
+                 voxel_size_m: float = _DEFAULTS.voxel_size_m,
+                 max_correspondence_distance_m: float = _DEFAULTS.max_correspondence_distance_m,
+                 max_iterations: int = _DEFAULTS.max_iterations,
+                 convergence_relative: float = _DEFAULTS.convergence_relative,
+                 robust_kernel: str = _DEFAULTS.robust_kernel,
+                 robust_kernel_scale_m: float = _DEFAULTS.robust_kernel_scale_m,
+                 gicp_epsilon: float = _DEFAULTS.gicp_epsilon,
+                 local_map: LocalMap | None = None,
+                 min_points: int = _DEFAULTS.min_points,
+                 min_fitness: float = _DEFAULTS.min_fitness,
+                 max_translation_jump_m: float = _DEFAULTS.max_translation_jump_m,
+                 max_rotation_jump_rad: float = _DEFAULTS.max_rotation_jump_rad,
+                 deskew: bool = _DEFAULTS.deskew,
+                 deskew_planar: bool = _DEFAULTS.deskew_planar,
+                 deskew_velocity_window: int = _DEFAULTS.deskew_velocity_window,
+                 scan_period_s: float = _DEFAULTS.scan_period_s,
+                 azimuth_stamp_at_sweep_end: bool = _DEFAULTS.azimuth_stamp_at_sweep_end,
+                 output_deskewed_points: bool = _DEFAULTS.output_deskewed_points,
+                 min_std_m: float = _DEFAULTS.min_std_m,
+                 min_std_rad: float = _DEFAULTS.min_std_rad,
+                 fallback_std_m: float = _DEFAULTS.fallback_std_m,
+                 fallback_std_rad: float = _DEFAULTS.fallback_std_rad):
         if mode not in MODES:
             raise ConfigError(f'mode must be one of {MODES}, got {mode!r}')
         if estimation == 'auto':
@@ -224,7 +248,7 @@ class ScanRegistration:
         kernel_name = 'none' if mode == 'paper' else robust_kernel
         self.kernel = _kernel(kernel_name, robust_kernel_scale_m)
         if local_map is None:
-            local_map = LocalMap()
+            local_map = local_map_from_config(_DEFAULTS)
         local_map.with_normals = estimation == 'point_to_plane'
         local_map.with_covariances = estimation == 'gicp'
         self.local_map = local_map
@@ -245,18 +269,13 @@ class ScanRegistration:
     @classmethod
     def from_config(cls, cfg: RegistrationConfig) -> 'ScanRegistration':
         cfg.validate()
-        local_map = LocalMap(
-            voxel_size_m=cfg.map_voxel_size_m, max_range_m=cfg.map_max_range_m,
-            max_points=cfg.map_max_points, max_keyframes=cfg.map_keyframes,
-            keyframe_distance_m=cfg.keyframe_distance_m,
-            keyframe_rotation_rad=cfg.keyframe_rotation_rad,
-            normal_neighbours=cfg.normal_neighbours)
         return cls(
             mode=cfg.mode, estimation=cfg.estimation, voxel_size_m=cfg.voxel_size_m,
             max_correspondence_distance_m=cfg.max_correspondence_distance_m,
             max_iterations=cfg.max_iterations, convergence_relative=cfg.convergence_relative,
             robust_kernel=cfg.robust_kernel, robust_kernel_scale_m=cfg.robust_kernel_scale_m,
-            gicp_epsilon=cfg.gicp_epsilon, local_map=local_map, min_points=cfg.min_points,
+            gicp_epsilon=cfg.gicp_epsilon, local_map=local_map_from_config(cfg),
+            min_points=cfg.min_points,
             min_fitness=cfg.min_fitness, max_translation_jump_m=cfg.max_translation_jump_m,
             max_rotation_jump_rad=cfg.max_rotation_jump_rad, deskew=cfg.deskew,
             deskew_planar=cfg.deskew_planar,
