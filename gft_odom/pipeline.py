@@ -86,7 +86,12 @@ class OdometryPipeline:
 
     @property
     def use_filter(self) -> bool:
-        return self.config.pipeline.use_spectral_filter
+        """Filter on, and its mask can drop something (an all-pass mask that also keeps the
+        isolated and out-of-range points returns the input: its spectrum is not computed)."""
+        spectral = self.config.spectral
+        drops_nothing = (self.band_mask.is_all_pass and spectral.keep_isolated
+                         and spectral.keep_out_of_range)
+        return self.config.pipeline.use_spectral_filter and not drops_nothing
 
     def register_frame(self, scan: Scan, freqs: PointFrequencies | None = None
                        ) -> FrameResult:

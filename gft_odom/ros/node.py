@@ -79,7 +79,7 @@ class FilterOdomNode(Node):
         self.create_subscription(PointCloud2, 'points', self._on_cloud, input_qos)
         self.create_timer(SUMMARY_PERIOD_S, self._log_summary)
         self.get_logger().info(
-            f'ready: filter {"on" if self.pipeline.use_filter else "off"} '
+            f'ready: filter {"on" if self.pipeline.use_filter else "off (or all-pass)"} '
             f'(n_bands={self.config.spectral.n_bands}, band_mask='
             f'{list(self.config.spectral.band_mask)}), registration mode '
             f'{self.config.registration.mode}')

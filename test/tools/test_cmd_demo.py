@@ -29,4 +29,5 @@ def test_demo_writes_a_table_and_every_run(tmp_path, capsys):
     assert results['paper']['points_kept_fraction'] == pytest.approx(1.0, abs=0.02)
     assert results['paper+gft']['points_kept_fraction'] < 0.9
     assert results['paper+gft']['mask_text'].startswith('B=4')
+    assert results['default+gft']['mask_text'].startswith('B=5')
     assert '| paper+gft |' in capsys.readouterr().out

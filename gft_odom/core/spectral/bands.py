@@ -114,6 +114,11 @@ class BandMask:
             raise ConfigError(f'band mask {values!r} repeats a band')
         return cls(validate_n_bands(n_bands), frozenset(int(v) for v in values))
 
+    @property
+    def is_all_pass(self) -> bool:
+        """Every band kept."""
+        return len(self.bands) == self.n_bands
+
     def as_list(self) -> list[int]:
         """Band numbers in increasing order, as written in configs."""
         return sorted(self.bands)
