@@ -18,7 +18,6 @@ import os
 import random
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -86,7 +85,7 @@ def main(argv=None) -> int:
     from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
     from gft_odom.sim.simulator import SimConfig
     from gft_odom.sim.writer import simulate_to_bag
-    from gft_odom.tools.through_node import ros_message_from_bag
+    from gft_odom.tools.through_node import ros_message_from_bag, stop_node_process
 
     work = Path(tempfile.mkdtemp(prefix='gft_soak_'))
     print(f'simulating {args.scans} scans, building the node in {work} ...', flush=True)
@@ -162,13 +161,7 @@ def main(argv=None) -> int:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_node_process(proc, timeout_s=20.0)
 
     stamps = np.array(sorted(sent))
     sent_t = np.array([sent[s] - t_start for s in stamps])

@@ -54,6 +54,18 @@ def find_node_executable(node_exe: str | None = None) -> Path:
                            'and source install/setup.bash, or pass --node-exe')
 
 
+def stop_node_process(proc: subprocess.Popen, timeout_s: float = 15.0) -> int:
+    """Ctrl-C the node (its clean shutdown logs the final counts), kill it if it hangs."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
 def ros_message_from_bag(raw, PointCloud2, PointField):
     """A bag's PointCloud2 (rosbags object, ROS 1 or 2) as an rclpy message, bytes untouched."""
     msg = PointCloud2()
@@ -177,13 +189,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_node_process(proc)
     T_base_sensor = base_to_sensor(config)
     T_sensor_base = invert_transform(T_base_sensor)
     base_poses = np.array([odometry[s] for s in stamps]).reshape(-1, 4, 4)
