@@ -190,6 +190,9 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         node.destroy_node()
         rclpy.try_shutdown(context=context)
         stop_node_process(proc)
+    if not stamps:
+        raise NodeProcessError(f'filter_odom_node answered none of the {len(statuses)} scans '
+                               f'sent; its log: {node_log}')
     T_base_sensor = base_to_sensor(config)
     T_sensor_base = invert_transform(T_base_sensor)
     base_poses = np.array([odometry[s] for s in stamps]).reshape(-1, 4, 4)
