@@ -197,6 +197,8 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
     }
     if not figures:
         del names['trajectory_png'], names['map_png']
+    elif replay.map_points_world is None:  # through the node: no per-scan clouds kept
+        del names['map_png']
     try:
         if out.exists() and not out.is_dir():
             raise GftOdomError(f'results folder {out} exists and is not a folder')
@@ -214,8 +216,9 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
             from gft_odom.figures import plot_map, plot_trajectory
             estimate = estimate_for_ground_truth(replay, config)
             plot_trajectory(tmp['trajectory_png'], estimate, replay.ground_truth, replay.metrics)
-            plot_map(tmp['map_png'], replay.map_points_world, replay.map_nu,
-                     replay.sensor_trajectory)
+            if 'map_png' in tmp:
+                plot_map(tmp['map_png'], replay.map_points_world, replay.map_nu,
+                         replay.sensor_trajectory)
         write_json(tmp['metrics'], replay.metrics)
         if out.exists():
             for key in names:  # dict order: metrics.json last

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import time
 
@@ -103,3 +104,21 @@ def test_node_refuses_an_invalid_parameter_at_run_time(installed_node, ros_env, 
         rclpy.try_shutdown(context=context)
         proc.terminate()
         proc.wait(timeout=15)
+
+
+def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, orchard_bag,
+                                                               ros_env, tmp_path, monkeypatch):
+    from gft_odom.tools.cli import main
+
+    exe, env = installed_node
+    for key in ('PYTHONPATH', 'AMENT_PREFIX_PATH'):
+        monkeypatch.setenv(key, env[key])  # as after `source install/setup.bash`
+    out = tmp_path / 'through_node'
+    assert main(['replay', str(orchard_bag.bag_path), '--gt', str(orchard_bag.gt_csv_path),
+                 '--out', str(out), '--through-node', '--max-scans', '5', '--quiet']) == 0
+    metrics = json.loads((out / 'metrics.json').read_text())
+    assert metrics['n_scans'] == 5 and metrics['ate_rmse_m'] is not None
+    poses = [line for line in (out / 'trajectory_tum.txt').read_text().splitlines()
+             if not line.startswith('#')]
+    assert len(poses) == 5
+    assert (out / 'trajectory.png').is_file()
