@@ -67,6 +67,10 @@ class NodeConfig:
     # sweeps instead of working through a queue of old ones (latency stays one processing
     # time); the skipped sweeps are counted from the gaps between stamps (`missed`).
     input_queue_depth: int = 1
+    # Reliable input: no cloud is lost, but the publisher must be reliable too and a lagging
+    # node back-pressures it. For lossless lockstep replays (`gft-odom replay --through-node`);
+    # on the robot, best effort (sensor-data QoS) is what drivers expect.
+    input_reliable: bool = False
 
     def validate(self) -> None:
         for name in ('odom_frame', 'base_frame'):

@@ -18,7 +18,7 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
@@ -31,7 +31,7 @@ NODE_NAME = 'filter_odom_node'
 # Sections whose values are only read when the pipeline starts (a change needs a restart).
 STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame', 'evaluation.',
                          'node.base_to_sensor', 'node.publish_tf', 'ground_truth.',
-                         'node.input_queue_depth')
+                         'node.input_queue_depth', 'node.input_reliable')
 WARN_PERIOD_S = 5.0
 SUMMARY_PERIOD_S = 10.0
 
@@ -69,11 +69,19 @@ class FilterOdomNode(Node):
 
         self.cloud_pub = self.create_publisher(PointCloud2, '~/filtered_points',
                                                qos_profile_sensor_data)
-        self.odom_pub = self.create_publisher(Odometry, '~/odometry', QoSProfile(depth=50))
-        self.path_pub = self.create_publisher(Path, '~/path', QoSProfile(depth=5))
+        # Transient local (latched): a subscriber that joins late (a recorder, RViz, a replay
+        # harness whose reader is still being matched) still gets the recent poses and the
+        # path. Volatile subscribers are compatible with it.
+        latched = DurabilityPolicy.TRANSIENT_LOCAL
+        self.odom_pub = self.create_publisher(Odometry, '~/odometry',
+                                              QoSProfile(depth=50, durability=latched))
+        self.path_pub = self.create_publisher(Path, '~/path',
+                                              QoSProfile(depth=1, durability=latched))
         self.tf_broadcaster = self._make_tf_broadcaster()
         input_qos = QoSProfile(depth=self.config.node.input_queue_depth,
-                               reliability=qos_profile_sensor_data.reliability,
+                               reliability=(ReliabilityPolicy.RELIABLE
+                                            if self.config.node.input_reliable
+                                            else qos_profile_sensor_data.reliability),
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
         self.create_subscription(PointCloud2, 'points', self._on_cloud, input_qos)

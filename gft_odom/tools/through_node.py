@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 
 NODE_NAME = 'filter_odom_node'
 RESEND_AFTER_S = 2.0
+MIN_SEND_INTERVAL_S = 0.1  # a VLP-16 sweep period
 
 
 class NodeProcessError(GftOdomError):
@@ -93,7 +94,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     import rclpy
     from nav_msgs.msg import Odometry
     from nav_msgs.msg import Path as PathMsg
-    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import PointCloud2, PointField
 
@@ -109,8 +110,13 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     params_path = work / 'params.yaml'
     params_path.write_text(config_to_yaml(config))
     node_log = Path(log_path) if log_path else work / 'node.log'
+    # Lockstep feeding never queues scans, so a deeper input queue costs no latency; with the
+    # robot's depth 1 the node was seen to miss the very first (fragmented, best-effort) cloud
+    # of a run in every resend.
     cmd = [str(exe), '--ros-args', '--params-file', str(params_path),
-           '-p', 'use_sim_time:=true', '-r', f'points:={topic}']
+           '-p', 'use_sim_time:=true', '-p', 'node.input_queue_depth:=10',
+           '-p', 'node.input_reliable:=true',
+           '-r', f'points:={topic}']
     log.info('starting %s (ROS_DOMAIN_ID=%d)', ' '.join(cmd), domain_id)
     with open(node_log, 'w') as log_file:
         proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
@@ -123,12 +129,15 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     kept_points: dict[int, int] = {}
     last_path: list = []
     reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    # The node's odometry is latched: poses published before our reader was matched arrive.
+    latched = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
     node.create_subscription(Odometry, f'/{NODE_NAME}/odometry',
                              lambda m: odometry.__setitem__(stamp_to_ns(m.header.stamp),
-                                                            odometry_to_pose(m)), reliable)
+                                                            odometry_to_pose(m)), latched)
     node.create_subscription(PathMsg, f'/{NODE_NAME}/path',
                              lambda m: last_path.__setitem__(slice(None), [m]),
-                             QoSProfile(depth=5))
+                             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     node.create_subscription(PointCloud2, f'/{NODE_NAME}/filtered_points',
                              lambda m: kept_points.__setitem__(stamp_to_ns(m.header.stamp),
                                                                m.width * m.height),
@@ -157,11 +166,15 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         spin_until(lambda: False, 2.0)
         with ScanBagReader(list(bag_paths), topic=topic) as reader:
             total = len(reader) if max_scans is None else min(len(reader), max_scans)
+            last_sent_s = 0.0
             for i, (stamp_ns, raw) in enumerate(reader.iter_messages()):
                 if i >= total:
                     break
                 msg = ros_message_from_bag(raw, PointCloud2, PointField)
                 stamp_ns = stamp_to_ns(msg.header.stamp)
+                # Never faster than the sensor: back-to-back 0.5 MB best-effort clouds were
+                # seen to be lost whole on this machine (every resend of the same scan).
+                spin_until(lambda: False, last_sent_s + MIN_SEND_INTERVAL_S - time.monotonic())
                 clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
                 t0 = time.perf_counter()
                 # Sensor-data QoS is best effort: a ~0.5 MB cloud is fragmented and may be lost
@@ -171,6 +184,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                 deadline = time.monotonic() + scan_timeout_s
                 while not got and time.monotonic() < deadline:
                     cloud_pub.publish(msg)
+                    last_sent_s = time.monotonic()
                     got = spin_until(lambda: stamp_ns in odometry, RESEND_AFTER_S)
                 latency.append(time.perf_counter() - t0)
                 if got:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gft_odom.config import GftOdomConfig, with_values
-from gft_odom.params_file import write_params_file
+from gft_odom.params_file import load_config, packaged_params_file, write_params_file
 from gft_odom.replay import run_replay
 from gft_odom.tools.through_node import replay_through_node
 
@@ -23,7 +23,8 @@ def test_node_trajectory_equals_in_process_replay(installed_node, orchard_bag, r
                                                    tmp_path):
     exe, env = installed_node
     env.update({k: ros_env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
-    config = GftOdomConfig()
+    # The paper-mode mask: the node really filters (frequency fields, points dropped).
+    config = load_config(packaged_params_file('paper_mode_gft.yaml'))
     in_process = run_replay([orchard_bag.bag_path], config, max_scans=N_SCANS)
     through_node = replay_through_node([orchard_bag.bag_path], config, max_scans=N_SCANS,
                                        node_exe=str(exe), env=env,
@@ -115,7 +116,8 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
         monkeypatch.setenv(key, env[key])  # as after `source install/setup.bash`
     out = tmp_path / 'through_node'
     assert main(['replay', str(orchard_bag.bag_path), '--gt', str(orchard_bag.gt_csv_path),
-                 '--out', str(out), '--through-node', '--max-scans', '5', '--quiet']) == 0
+                 '--out', str(out), '--through-node', '--max-scans', '5', '--quiet',
+                 '--config', str(packaged_params_file('paper_mode_gft.yaml'))]) == 0
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['n_scans'] == 5 and metrics['ate_rmse_m'] is not None
     poses = [line for line in (out / 'trajectory_tum.txt').read_text().splitlines()
