@@ -15,7 +15,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -23,6 +23,7 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.metrics import TrajectoryEvaluator
 from gft_odom.core.trajectory import Trajectory
+from gft_odom.core.types import Scan
 from gft_odom.errors import BagError, GftOdomError, GroundTruthError
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
@@ -54,6 +55,24 @@ class ReplayResult:
     ground_truth_is_gps: bool = False
 
 
+def scan_count(reader: ScanBagReader, max_scans: int | None) -> int:
+    """Scans a replay will take from `reader` (for progress bars)."""
+    return len(reader) if max_scans is None else min(len(reader), max_scans)
+
+
+def timed_scans(reader: ScanBagReader, count: int) -> Iterator[tuple[Scan, float]]:
+    """The first `count` scans of `reader`, each with the seconds spent reading and decoding
+    it: every replay front end times the same way."""
+    scans = iter(reader)
+    for _ in range(count):
+        t0 = time.perf_counter()
+        try:
+            scan = next(scans)
+        except StopIteration:
+            return
+        yield scan, time.perf_counter() - t0
+
+
 def is_gps_ground_truth(path: str | Path) -> bool:
     """CitrusFarm gt.csv / gt.bag hold the GPS antenna; a TUM file holds the sensor pose."""
     return Path(path).suffix.lower() not in ('.txt', '.tum')
@@ -71,15 +90,8 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     stages: dict[str, list[float]] = {}
     map_xyz, map_nu = [], []
     with ScanBagReader(list(bag_paths), topic=topic) as reader:
-        total = len(reader) if max_scans is None else min(len(reader), max_scans)
-        scans = iter(reader)
-        for i in range(total):
-            t0 = time.perf_counter()
-            try:
-                scan = next(scans)
-            except StopIteration:
-                break
-            t_decode = time.perf_counter() - t0
+        total = scan_count(reader, max_scans)
+        for i, (scan, t_decode) in enumerate(timed_scans(reader, total)):
             result = pipeline.register_frame(scan)
             latency.append(t_decode + result.timings_s['pipeline'])
             for name, value in {'decode': t_decode, **result.timings_s}.items():

@@ -28,7 +28,7 @@ from gft_odom.errors import ConfigError
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.pipeline import OdometryPipeline, base_to_sensor
-from gft_odom.replay import ReplayResult, summarize
+from gft_odom.replay import ReplayResult, scan_count, summarize, timed_scans
 from gft_odom.sim.simulator import SimConfig
 from gft_odom.sim.writer import simulate_to_bag
 
@@ -137,16 +137,10 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
         ground_truth = read_ground_truth(sequence.gt_path)
     stamps, poses, latency, points_in, points_kept, statuses = [], [], [], [], [], []
     with ScanBagReader([sequence.bag_path]) as reader:
-        total = len(reader) if max_scans is None else min(len(reader), max_scans)
-        scans = iter(reader)
-        for _ in range(total):
+        for scan, t_decode in timed_scans(reader, scan_count(reader, max_scans)):
             t0 = time.perf_counter()
-            try:
-                scan = next(scans)
-            except StopIteration:
-                break
             stamp_ns, T_world_sensor, n_in, n_kept, status = step(scan)
-            latency.append(time.perf_counter() - t0)
+            latency.append(t_decode + time.perf_counter() - t0)
             stamps.append(stamp_ns)
             poses.append(T_world_sensor)
             points_in.append(n_in)
