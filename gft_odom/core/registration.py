@@ -10,9 +10,16 @@ Two modes share one backend so that filtered/unfiltered comparisons are fair:
   map, optional deskew (per-point `time`, or the azimuth when the bag has none; off by
   default, see the config). docs/registration.md has the measurements behind these choices.
 
-Registration never raises for bad geometry: too few points, a low fitness or a jump far from
-the prediction return the prediction with a `fallback_*` status and an inflated covariance, and
-the next scan goes on. RegistrationError is raised only for malformed input.
+Registration never raises for bad geometry: too few points, a low fitness, a jump far from
+the prediction or a motion no Jackal can make return the prediction with a `fallback_*` status
+and an inflated covariance, and the next scan goes on. RegistrationError is raised only for
+malformed input.
+
+Motion model: a velocity (rad/s, m/s) from the last trusted match, extrapolated over the real
+stamp difference and capped by the physical bounds. After a gap (> `max_gap_s`) or
+`max_consecutive_fallbacks` fallbacks in a row the velocity is dropped and the next scan is
+re-acquired against the local map from a few initial guesses (status `recovered`), so one bad
+patch of data cannot make every later prediction miss.
 
 Frames: `T_world_sensor` is the sensor pose at the scan's stamp, world = the sensor frame at the
 first registered scan. `covariance` is the (6, 6) uncertainty of this scan's registration
@@ -42,8 +49,11 @@ o3d_reg = o3d.pipelines.registration
 MODES = ('default', 'paper')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
-STATUSES = ('ok', 'first', 'fallback_too_few_points', 'fallback_low_fitness',
-            'fallback_diverged')
+# Every status `register` / `advance_with_prediction` can return.
+STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
+            'fallback_diverged', 'fallback_implausible', 'fallback_degenerate')
+# Poses trusted enough to update the velocity and the reference (map or previous scan).
+TRUSTED_STATUSES = ('first', 'ok', 'recovered')
 
 
 @dataclass(frozen=True)
@@ -84,6 +94,23 @@ class RegistrationConfig:
     # (2 m/s, ~2 rad/s top speed) cannot change its velocity by more within 0.1 s.
     max_translation_jump_m: float = 0.5
     max_rotation_jump_rad: float = 0.25
+    # Physical bounds: a Clearpath Jackal tops out at 2.0 m/s. The rotation bound applies to
+    # the whole rotation angle (yaw dominates on a ground robot; bumps add roll and pitch).
+    # A registration implying faster motion over the real stamp difference is rejected
+    # (`fallback_implausible`, never enters the map); predictions are capped by the same.
+    max_speed_mps: float = 2.0
+    max_yaw_rate_rps: float = 4.0
+    # Relative slack on both bounds for stamp jitter and ICP noise over short steps; a copy
+    # of a scan rotated 90 deg 30 ms later implies 52 rad/s, far beyond it.
+    motion_margin: float = 0.5
+    # A stamp step longer than this is a gap: the velocity is not extrapolated over it and the
+    # scan is re-acquired against the map (zero motion and last velocity as initial guesses).
+    max_gap_s: float = 1.0
+    # This many fallbacks in a row drop the velocity and re-acquire the same way.
+    max_consecutive_fallbacks: int = 3
+    # Re-acquisition runs a coarse ICP with the correspondence distance widened by this
+    # factor from each guess, then the normal ICP; the best plausible fit wins.
+    recovery_correspondence_factor: float = 3.0
     # Motion compensation (default mode only). Off by default: on the simulated orchard drives
     # at ~1 m/s it did not improve accuracy (scans distorted alike match a map of scans
     # distorted alike; a velocity from ICP adds noise). It helps after sudden starts/turns.
@@ -117,24 +144,37 @@ class RegistrationConfig:
                     'gicp_epsilon', 'map_voxel_size_m', 'map_max_range_m',
                     'keyframe_distance_m', 'keyframe_rotation_rad', 'max_translation_jump_m',
                     'max_rotation_jump_rad', 'scan_period_s', 'convergence_relative',
-                    'min_std_m', 'min_std_rad', 'fallback_std_m', 'fallback_std_rad')
+                    'min_std_m', 'min_std_rad', 'fallback_std_m', 'fallback_std_rad',
+                    'max_speed_mps', 'max_yaw_rate_rps', 'max_gap_s')
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ConfigError(f'{name} must be a finite number > 0, got {value}')
         minimum = {'max_iterations': 1, 'map_max_points': 100, 'map_keyframes': 1,
-                   'normal_neighbours': 5, 'min_points': 3}
+                   'normal_neighbours': 5, 'min_points': 3, 'max_consecutive_fallbacks': 1,
+                   'deskew_velocity_window': 1}
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
         if not 0.0 <= self.min_fitness <= 1.0:
             raise ConfigError(f'min_fitness must be in [0, 1], got {self.min_fitness}')
+        if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
+            raise ConfigError(f'motion_margin must be a finite number >= 0, got '
+                              f'{self.motion_margin}')
+        if not (math.isfinite(self.recovery_correspondence_factor)
+                and self.recovery_correspondence_factor >= 1.0):
+            raise ConfigError(f'recovery_correspondence_factor must be >= 1, got '
+                              f'{self.recovery_correspondence_factor}')
+        if self.max_gap_s < self.scan_period_s:
+            raise ConfigError(f'max_gap_s ({self.max_gap_s}) must be >= scan_period_s '
+                              f'({self.scan_period_s})')
         if self.fallback_std_m < self.min_std_m or self.fallback_std_rad < self.min_std_rad:
             raise ConfigError('fallback_std_m/_rad must be >= min_std_m/_rad '
                               '(a fallback is never more certain than a match)')
 
     @property
     def resolved_estimation(self) -> str:
+        """The estimator 'auto' stands for in this mode."""
         if self.estimation != 'auto':
             return self.estimation
         return 'point_to_point' if self.mode == 'paper' else 'point_to_plane'
@@ -189,9 +229,6 @@ def _kernel(name: str, scale_m: float):
     return o3d_reg.L2Loss()
 
 
-_DEFAULTS = RegistrationConfig()
-
-
 def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
     """The local map of default mode, from the `map_*` / keyframe fields."""
     return LocalMap(
@@ -202,108 +239,120 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
         normal_neighbours=cfg.normal_neighbours)
 
 
+def delta_of_twist(twist: np.ndarray, dt_s: float) -> np.ndarray:
+    """The rigid motion of a constant twist (rot rad/s, lin m/s) lasting `dt_s`."""
+    return make_transform(Rotation.from_rotvec(twist[:3] * dt_s).as_matrix(), twist[3:] * dt_s)
+
+
 class ScanRegistration:
     """Registers consecutive scans and keeps the odometry state (pose, velocity, local map)."""
 
-    def __init__(self,
-                 mode: str = _DEFAULTS.mode,
-                 estimation: str = _DEFAULTS.estimation,
-                 voxel_size_m: float = _DEFAULTS.voxel_size_m,
-                 max_correspondence_distance_m: float = _DEFAULTS.max_correspondence_distance_m,
-                 max_iterations: int = _DEFAULTS.max_iterations,
-                 convergence_relative: float = _DEFAULTS.convergence_relative,
-                 robust_kernel: str = _DEFAULTS.robust_kernel,
-                 robust_kernel_scale_m: float = _DEFAULTS.robust_kernel_scale_m,
-                 gicp_epsilon: float = _DEFAULTS.gicp_epsilon,
-                 local_map: LocalMap | None = None,
-                 min_points: int = _DEFAULTS.min_points,
-                 min_fitness: float = _DEFAULTS.min_fitness,
-                 max_translation_jump_m: float = _DEFAULTS.max_translation_jump_m,
-                 max_rotation_jump_rad: float = _DEFAULTS.max_rotation_jump_rad,
-                 deskew: bool = _DEFAULTS.deskew,
-                 deskew_planar: bool = _DEFAULTS.deskew_planar,
-                 deskew_velocity_window: int = _DEFAULTS.deskew_velocity_window,
-                 scan_period_s: float = _DEFAULTS.scan_period_s,
-                 azimuth_stamp_at_sweep_end: bool = _DEFAULTS.azimuth_stamp_at_sweep_end,
-                 output_deskewed_points: bool = _DEFAULTS.output_deskewed_points,
-                 min_std_m: float = _DEFAULTS.min_std_m,
-                 min_std_rad: float = _DEFAULTS.min_std_rad,
-                 fallback_std_m: float = _DEFAULTS.fallback_std_m,
-                 fallback_std_rad: float = _DEFAULTS.fallback_std_rad):
-        if mode not in MODES:
-            raise ConfigError(f'mode must be one of {MODES}, got {mode!r}')
-        if estimation == 'auto':
-            estimation = 'point_to_point' if mode == 'paper' else 'point_to_plane'
-        if estimation not in ESTIMATIONS:
-            raise ConfigError(f'estimation must be one of {ESTIMATIONS}, got {estimation!r}')
-        self.mode = mode
-        self.estimation = estimation
-        self.voxel_size_m = voxel_size_m
-        self.max_correspondence_distance_m = max_correspondence_distance_m
+    def __init__(self, config: RegistrationConfig = RegistrationConfig()):
+        config.validate()
+        self.config = config
+        self.mode = config.mode
+        self.estimation = config.resolved_estimation
         self.criteria = o3d_reg.ICPConvergenceCriteria(
-            relative_fitness=convergence_relative, relative_rmse=convergence_relative,
-            max_iteration=max_iterations)
-        self.gicp_epsilon = gicp_epsilon
+            relative_fitness=config.convergence_relative,
+            relative_rmse=config.convergence_relative, max_iteration=config.max_iterations)
         # The paper's ICP is plain least squares; ours is robust.
-        kernel_name = 'none' if mode == 'paper' else robust_kernel
-        self.kernel = _kernel(kernel_name, robust_kernel_scale_m)
-        if local_map is None:
-            local_map = local_map_from_config(_DEFAULTS)
-        local_map.with_normals = estimation == 'point_to_plane'
-        local_map.with_covariances = estimation == 'gicp'
-        self.local_map = local_map
-        self.min_points = min_points
-        self.min_fitness = min_fitness
-        self.max_translation_jump_m = max_translation_jump_m
-        self.max_rotation_jump_rad = max_rotation_jump_rad
-        self.deskew = deskew and mode == 'default'
-        self.deskew_planar = deskew_planar
-        self.deskew_velocity_window = deskew_velocity_window
-        self.scan_period_s = scan_period_s
-        self.azimuth_stamp_at_sweep_end = azimuth_stamp_at_sweep_end
-        self.output_deskewed_points = output_deskewed_points
-        self.min_var = np.array([min_std_m ** 2] * 3 + [min_std_rad ** 2] * 3)
-        self.fallback_var = np.array([fallback_std_m ** 2] * 3 + [fallback_std_rad ** 2] * 3)
+        kernel_name = 'none' if config.mode == 'paper' else config.robust_kernel
+        self.kernel = _kernel(kernel_name, config.robust_kernel_scale_m)
+        self.local_map = local_map_from_config(config)
+        self.local_map.with_normals = self.estimation == 'point_to_plane'
+        self.local_map.with_covariances = self.estimation == 'gicp'
+        self.deskew = config.deskew and config.mode == 'default'
+        self.min_var = np.array([config.min_std_m ** 2] * 3 + [config.min_std_rad ** 2] * 3)
+        self.fallback_var = np.array(
+            [config.fallback_std_m ** 2] * 3 + [config.fallback_std_rad ** 2] * 3)
         self.reset()
 
     @classmethod
     def from_config(cls, cfg: RegistrationConfig) -> 'ScanRegistration':
-        cfg.validate()
-        return cls(
-            mode=cfg.mode, estimation=cfg.estimation, voxel_size_m=cfg.voxel_size_m,
-            max_correspondence_distance_m=cfg.max_correspondence_distance_m,
-            max_iterations=cfg.max_iterations, convergence_relative=cfg.convergence_relative,
-            robust_kernel=cfg.robust_kernel, robust_kernel_scale_m=cfg.robust_kernel_scale_m,
-            gicp_epsilon=cfg.gicp_epsilon, local_map=local_map_from_config(cfg),
-            min_points=cfg.min_points,
-            min_fitness=cfg.min_fitness, max_translation_jump_m=cfg.max_translation_jump_m,
-            max_rotation_jump_rad=cfg.max_rotation_jump_rad, deskew=cfg.deskew,
-            deskew_planar=cfg.deskew_planar,
-            deskew_velocity_window=cfg.deskew_velocity_window,
-            scan_period_s=cfg.scan_period_s,
-            azimuth_stamp_at_sweep_end=cfg.azimuth_stamp_at_sweep_end,
-            output_deskewed_points=cfg.output_deskewed_points,
-            min_std_m=cfg.min_std_m, min_std_rad=cfg.min_std_rad,
-            fallback_std_m=cfg.fallback_std_m, fallback_std_rad=cfg.fallback_std_rad)
+        """Same as the constructor (kept for the callers that name it)."""
+        return cls(cfg)
 
     def reset(self) -> None:
         """Forget everything: the next scan is the first again."""
         self.T_world_sensor = np.eye(4)
-        self.last_delta = np.eye(4)  # T_prev_curr of the last trusted registration
-        self.last_dt_s = self.scan_period_s
-        self._twists: deque[np.ndarray] = deque(maxlen=self.deskew_velocity_window)
+        # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
+        self.velocity = np.zeros(6)
+        self._twists: deque[np.ndarray] = deque(maxlen=self.config.deskew_velocity_window)
         self.last_stamp_ns: int | None = None
         self.n_registered = 0
         self.n_fallbacks = 0
+        self.consecutive_fallbacks = 0
+        # Re-acquiring after a gap or a run of fallbacks; the velocity before the loss.
+        self.recovering = False
+        self._velocity_before_loss = np.zeros(6)
         self._prev_scan: o3d.geometry.PointCloud | None = None  # paper mode's target
         self.local_map.clear()
         self._map_provisional = False
 
     @property
     def has_reference(self) -> bool:
+        """A map (default) or a previous scan (paper) to register against."""
         if self.mode == 'paper':
             return self._prev_scan is not None
         return len(self.local_map) > 0
+
+    def capped(self, twist: np.ndarray) -> np.ndarray:
+        """`twist` scaled down (direction kept) to the speed and rotation-rate bounds."""
+        cfg = self.config
+        out = np.array(twist, dtype=float)
+        for part, bound in ((slice(0, 3), cfg.max_yaw_rate_rps), (slice(3, 6), cfg.max_speed_mps)):
+            norm = float(np.linalg.norm(out[part]))
+            if norm > bound:
+                out[part] *= bound / norm
+        return out
+
+    def predicted_delta(self, dt_s: float) -> np.ndarray:
+        """T_prev_curr the motion model expects `dt_s` after the last scan (none if <= 0)."""
+        return delta_of_twist(self.velocity, dt_s) if dt_s > 0.0 else np.eye(4)
+
+    def is_plausible(self, T_prev_curr: np.ndarray, dt_s: float) -> bool:
+        """Could the robot have made this motion in `dt_s` (bounds times 1 + margin)?"""
+        cfg = self.config
+        distance_m, angle_rad = transform_magnitude(T_prev_curr)
+        slack = (1.0 + cfg.motion_margin) * max(dt_s, 0.0)
+        return (distance_m <= cfg.max_speed_mps * slack
+                and angle_rad <= cfg.max_yaw_rate_rps * slack)
+
+    def _step_s(self, stamp_ns: int) -> float:
+        if self.last_stamp_ns is None:
+            return self.config.scan_period_s
+        dt_s = (int(stamp_ns) - self.last_stamp_ns) * 1e-9
+        if not dt_s > 0.0:
+            log.warning('scan stamp %d is not after the previous one (%d): predicting no motion',
+                        stamp_ns, self.last_stamp_ns)
+        return dt_s
+
+    def _lose_track(self, why: str) -> None:
+        """Stop extrapolating the velocity; re-acquire the next scan against the map."""
+        if not self.recovering:
+            log.info('re-acquiring against the map: %s', why)
+            self._velocity_before_loss = self.velocity.copy()
+        self.recovering = True
+        self.velocity = np.zeros(6)
+        self._twists.clear()
+
+    def _begin(self, stamp_ns: int) -> tuple[float, np.ndarray]:
+        """Time step since the last scan and the predicted pose (a gap drops the velocity)."""
+        dt_s = self._step_s(stamp_ns)
+        if self.n_registered and dt_s > self.config.max_gap_s and self.mode == 'default':
+            self._lose_track(f'gap of {dt_s:.2f} s in the scan stamps')
+        return dt_s, self.T_world_sensor @ self.predicted_delta(dt_s)
+
+    def advance_with_prediction(self, stamp_ns: int,
+                                status: str = 'fallback_degenerate') -> RegistrationResult:
+        """Take the motion prediction as the pose at `stamp_ns` without matching anything:
+        for scans the caller knows ICP cannot observe (a flat cloud). Counted as a fallback."""
+        if status not in STATUSES or not status.startswith('fallback'):
+            raise RegistrationError(f'advance_with_prediction needs a fallback status from '
+                                    f'{STATUSES}, got {status!r}')
+        t_start = time.perf_counter()
+        dt_s, T_pred = self._begin(stamp_ns)
+        return self._finish(stamp_ns, dt_s, status, T_pred, 0, t_start, {})
 
     def register(self, points_xyz: np.ndarray, stamp_ns: int,
                  time_offset_s: np.ndarray | None = None) -> RegistrationResult:
@@ -312,19 +361,12 @@ class ScanRegistration:
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
 
-        # 1. Constant-velocity prediction, scaled to this scan's time step.
-        dt_s = self.scan_period_s if self.last_stamp_ns is None else (
-            (int(stamp_ns) - self.last_stamp_ns) * 1e-9)
-        if self.last_stamp_ns is not None and not dt_s > 0.0:
-            log.warning('scan stamp %d is not after the previous one (%d): predicting no motion',
-                        stamp_ns, self.last_stamp_ns)
-        step_ratio = max(dt_s, 0.0) / self.last_dt_s if self.last_dt_s > 0.0 else 0.0
-        delta_pred = scale_delta(self.last_delta, step_ratio)
-        T_pred = self.T_world_sensor @ delta_pred
+        # 1. Velocity prediction over the real stamp difference, capped by the bounds.
+        dt_s, T_pred = self._begin(stamp_ns)
 
         # 2. Downsample (first point per voxel keeps its time), then deskew those points.
         t0 = time.perf_counter()
-        keep = voxel_downsample_indices(points_xyz, self.voxel_size_m)
+        keep = voxel_downsample_indices(points_xyz, self.config.voxel_size_m)
         source_xyz = points_xyz[keep]
         timings['downsample'] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -335,44 +377,65 @@ class ScanRegistration:
                                        dt_s)
         timings['deskew'] = time.perf_counter() - t0
 
-        # 3. Decide: first scan, too few points, or ICP against the reference.
+        # 3. Decide: first scan, too few points, re-acquisition or ICP against the reference.
         n_used = int(source_xyz.shape[0])
-        fitness = rmse = 0.0
-        information = None
-        # Axes the ICP information is expressed in: world (map) or the previous scan (paper).
-        R_world_target = self.T_world_sensor[:3, :3] if self.mode == 'paper' else np.eye(3)
-        if n_used < self.min_points:
+        match = None
+        if n_used < self.config.min_points:
             status, T_new = 'fallback_too_few_points', T_pred
             if not self.has_reference:
                 log.warning('scan %d has %d points after downsampling (< min_points %d) and '
-                            'there is no reference yet', stamp_ns, n_used, self.min_points)
+                            'there is no reference yet', stamp_ns, n_used,
+                            self.config.min_points)
         elif not self.has_reference:
             status, T_new = 'first', (T_pred if self.n_registered else np.eye(4))
         else:
             t0 = time.perf_counter()
-            status, T_new, fitness, rmse, information = self._match(source_xyz, T_pred, dt_s)
+            if self.recovering and self.mode == 'default':
+                match = self._reacquire(source_xyz, T_pred, dt_s)
+            else:
+                match = self._match(source_xyz, T_pred, dt_s)
+            status, T_new = match[0], match[1]
             timings['icp'] = time.perf_counter() - t0
-        if status.startswith('fallback'):
-            self.n_fallbacks += 1
-            log.debug('scan %d: %s (fitness %.3f, %d points)', stamp_ns, status, fitness, n_used)
 
-        # 4. Update the state and the reference (only with trusted poses).
-        t0 = time.perf_counter()
-        T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
-        deskewed_full = None
-        if status in ('ok', 'first'):
-            if self.deskew and offsets_s is not None and status == 'ok':
-                # Re-deskew with the motion just estimated: the map gets the better cloud.
-                source_xyz = deskew_points(points_xyz[keep], offsets_s[keep],
-                                           self._deskew_motion(dt_s, T_prev_curr), dt_s)
-            self._update_reference(source_xyz, T_new, status)
-            if status == 'ok' and dt_s > 0.0:
-                self.last_delta, self.last_dt_s = T_prev_curr, dt_s
-                self._twists.append(twist_of(T_prev_curr, dt_s))
-        if self.output_deskewed_points:
-            deskewed_full = points_xyz.copy() if offsets_s is None else deskew_points(
+        # 4. Re-deskew a trusted scan with its own motion: the map gets the better cloud.
+        if (self.deskew and offsets_s is not None and status in ('ok', 'recovered')
+                and dt_s > 0.0):
+            T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
+            source_xyz = deskew_points(points_xyz[keep], offsets_s[keep],
+                                       self._deskew_motion(dt_s, T_prev_curr), dt_s)
+        result = self._finish(stamp_ns, dt_s, status, T_new, n_used, t_start, timings,
+                              source_xyz, match)
+        if self.config.output_deskewed_points:
+            result.deskewed_points = points_xyz.copy() if offsets_s is None else deskew_points(
                 points_xyz, offsets_s,
-                self._deskew_motion(dt_s, T_prev_curr if status == 'ok' else None), dt_s)
+                self._deskew_motion(dt_s, result.T_prev_curr if status == 'ok' else None), dt_s)
+        return result
+
+    def _finish(self, stamp_ns: int, dt_s: float, status: str, T_new: np.ndarray, n_used: int,
+                t_start: float, timings: dict[str, float],
+                source_xyz: np.ndarray | None = None, match=None) -> RegistrationResult:
+        """Update pose, velocity, fallback run and reference; build the result."""
+        t0 = time.perf_counter()
+        fitness, rmse, information = (match[2], match[3], match[4]) if match else (0.0, 0.0, None)
+        # Axes the ICP information is expressed in: world (map) or the previous scan (paper).
+        R_world_target = self.T_world_sensor[:3, :3] if self.mode == 'paper' else np.eye(3)
+        T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
+        if status in TRUSTED_STATUSES:
+            self._update_reference(source_xyz, T_new, status)
+            self.consecutive_fallbacks = 0
+            if status == 'ok' and 0.0 < dt_s <= self.config.max_gap_s:
+                self.velocity = self.capped(twist_of(T_prev_curr, dt_s))
+                self._twists.append(self.velocity)
+            elif status == 'recovered':
+                self.velocity = match[5]  # the velocity of the guess that won
+            self.recovering = False
+        else:
+            self.n_fallbacks += 1
+            self.consecutive_fallbacks += 1
+            log.debug('scan %d: %s (fitness %.3f, %d points)', stamp_ns, status, fitness, n_used)
+            if (self.consecutive_fallbacks >= self.config.max_consecutive_fallbacks
+                    and self.mode == 'default'):
+                self._lose_track(f'{self.consecutive_fallbacks} fallbacks in a row')
         self.T_world_sensor = T_new
         self.last_stamp_ns = int(stamp_ns)
         self.n_registered += 1
@@ -382,21 +445,19 @@ class ScanRegistration:
             T_world_sensor=T_new.copy(), T_prev_curr=T_prev_curr, fitness=fitness,
             inlier_rmse_m=rmse, n_points_used=n_used, status=status,
             covariance=self._covariance(status, information, R_world_target),
-            timings_s=timings,
-            deskewed_points=deskewed_full)
+            timings_s=timings)
 
     def _deskew_motion(self, dt_s: float, latest: np.ndarray | None = None) -> np.ndarray:
         """The motion over `dt_s` that deskew assumes: the mean twist of the recent trusted
         scans (with `latest`, this scan's own estimate, as the newest), planar by default."""
+        window = self.config.deskew_velocity_window
         twists = list(self._twists)
         if latest is not None and dt_s > 0.0:
-            twists = twists[len(twists) - self.deskew_velocity_window + 1:] + [
-                twist_of(latest, dt_s)]
+            twists = twists[len(twists) - window + 1:] + [twist_of(latest, dt_s)]
         if not twists or not dt_s > 0.0:
             return np.eye(4)
-        twist = np.mean(twists[-self.deskew_velocity_window:], axis=0) * dt_s
-        motion = make_transform(Rotation.from_rotvec(twist[:3]).as_matrix(), twist[3:])
-        return planar_delta(motion) if self.deskew_planar else motion
+        motion = delta_of_twist(np.mean(twists[-window:], axis=0), dt_s)
+        return planar_delta(motion) if self.config.deskew_planar else motion
 
     def _check_input(self, points_xyz, time_offset_s):
         points = np.asarray(points_xyz, dtype=float)
@@ -419,11 +480,13 @@ class ScanRegistration:
     def _time_offsets(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None):
         if time_offset_s is not None:
             return time_offset_s
-        return azimuth_time_offsets(points_xyz, self.scan_period_s,
-                                    self.azimuth_stamp_at_sweep_end)
+        return azimuth_time_offsets(points_xyz, self.config.scan_period_s,
+                                    self.config.azimuth_stamp_at_sweep_end)
 
     def _match(self, source_xyz: np.ndarray, T_pred: np.ndarray, dt_s: float):
-        """ICP from the prediction (default) or from identity (paper); then sanity checks."""
+        """ICP from the prediction (default) or from identity (paper); then sanity checks:
+        finite, fitness, close to the prediction, physically possible."""
+        cfg = self.config
         source = to_cloud(source_xyz)
         if self.mode == 'paper':
             target = self._prev_scan
@@ -431,31 +494,63 @@ class ScanRegistration:
         else:
             target = self.local_map.cloud
             init = T_pred
-        result = self._icp(source, target, init)
+        result = self._icp(source, target, init, cfg.max_correspondence_distance_m)
         T_est = np.asarray(result.transformation)
         if self.mode == 'paper':
             T_est = self.T_world_sensor @ T_est
         fitness, rmse = float(result.fitness), float(result.inlier_rmse)
         if not np.all(np.isfinite(T_est)):
             return 'fallback_diverged', T_pred, fitness, rmse, None
-        if fitness < self.min_fitness:
+        if fitness < cfg.min_fitness:
             return 'fallback_low_fitness', T_pred, fitness, rmse, None
-        correction = invert_transform(T_pred) @ T_est
-        jump_m, jump_rad = transform_magnitude(correction)
-        allowance = max(1.0, dt_s / self.scan_period_s)
-        if (jump_m > self.max_translation_jump_m * allowance
-                or jump_rad > self.max_rotation_jump_rad * allowance):
+        if not self.is_plausible(invert_transform(self.T_world_sensor) @ T_est, dt_s):
+            log.debug('ICP implies motion beyond the bounds over %.3f s', dt_s)
+            return 'fallback_implausible', T_pred, fitness, rmse, None
+        jump_m, jump_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
+        allowance = max(1.0, dt_s / cfg.scan_period_s)
+        if (jump_m > cfg.max_translation_jump_m * allowance
+                or jump_rad > cfg.max_rotation_jump_rad * allowance):
             log.debug('ICP moved %.3f m / %.3f rad away from the prediction', jump_m, jump_rad)
             return 'fallback_diverged', T_pred, fitness, rmse, None
         return 'ok', T_est, fitness, rmse, self._icp_information(source_xyz, target, result, rmse)
 
-    def _icp(self, source, target, init):
-        dist = self.max_correspondence_distance_m
+    def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, dt_s: float):
+        """Re-acquire against the map from zero motion and from the velocity before the loss
+        (capped): a coarse ICP with a widened correspondence distance, then the normal one.
+        The plausible fit with the best fitness wins; no jump check (the guesses are rough)."""
+        cfg = self.config
+        source, target = to_cloud(source_xyz), self.local_map.cloud
+        guesses = [np.zeros(6)]
+        if np.any(self._velocity_before_loss):
+            guesses.append(self.capped(self._velocity_before_loss))
+        wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
+        best, status = None, 'fallback_low_fitness'
+        for velocity in guesses:
+            init = self.T_world_sensor @ delta_of_twist(velocity, max(dt_s, 0.0))
+            coarse = self._icp(source, target, init, wide_m)
+            result = self._icp(source, target, np.asarray(coarse.transformation),
+                               cfg.max_correspondence_distance_m)
+            T_est = np.asarray(result.transformation)
+            if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
+                continue
+            if not self.is_plausible(invert_transform(self.T_world_sensor) @ T_est, dt_s):
+                status = 'fallback_implausible'
+                continue
+            if best is None or result.fitness > best[0].fitness:
+                best = (result, T_est, velocity)
+        if best is None:
+            return status, T_pred, 0.0, 0.0, None
+        result, T_est, velocity = best
+        rmse = float(result.inlier_rmse)
+        return ('recovered', T_est, float(result.fitness), rmse,
+                self._icp_information(source_xyz, target, result, rmse), velocity)
+
+    def _icp(self, source, target, init, distance_m: float):
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
-                self.gicp_epsilon, self.kernel)
-            return o3d_reg.registration_generalized_icp(source, target, dist, init, estimation,
-                                                        self.criteria)
+                self.config.gicp_epsilon, self.kernel)
+            return o3d_reg.registration_generalized_icp(source, target, distance_m, init,
+                                                        estimation, self.criteria)
         if self.estimation == 'point_to_plane':
             if not target.has_normals():
                 target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(
@@ -463,7 +558,8 @@ class ScanRegistration:
             estimation = o3d_reg.TransformationEstimationPointToPlane(self.kernel)
         else:
             estimation = o3d_reg.TransformationEstimationPointToPoint()
-        return o3d_reg.registration_icp(source, target, dist, init, estimation, self.criteria)
+        return o3d_reg.registration_icp(source, target, distance_m, init, estimation,
+                                        self.criteria)
 
     def _icp_information(self, source_xyz, target, result, rmse) -> np.ndarray | None:
         """Gauss-Newton information J^T J / rmse^2 of the final pairs, in the target's axes.
@@ -505,8 +601,10 @@ class ScanRegistration:
         cov[idx, idx] = np.maximum(cov[idx, idx], self.min_var)
         return cov
 
-    def _update_reference(self, source_xyz: np.ndarray, T_world_sensor: np.ndarray,
+    def _update_reference(self, source_xyz: np.ndarray | None, T_world_sensor: np.ndarray,
                           status: str) -> None:
+        if source_xyz is None:
+            return
         if self.mode == 'paper':
             self._prev_scan = to_cloud(source_xyz)
             return
