@@ -1,11 +1,22 @@
 """The per-scan loop, the one place the node and every offline tool call.
 
-`OdometryPipeline.register_frame(scan)` reads as the method: crop, graph-frequency filter,
-register, update. Frames follow REP 105: `odom` is where `base_link` was at the first scan.
+`OdometryPipeline.register_frame(scan)` reads as the method: accept, crop, graph-frequency
+filter, register, update. Frames follow REP 105: `odom` is where `base_link` was at the first
+scan.
+
+Acceptance is decided here, once, for the node and every offline tool alike: an empty or
+all-identical scan, a stamp not after the last accepted one, and a jump of the stamps by more
+than `registration.max_gap_s` are rejected and counted by reason. A jump is held as a candidate
+for one scan: when the next scan continues from it the clock really stepped (forward: a gap,
+the motion is re-acquired; backward, e.g. a bag played in a loop: the odometry starts over, as
+tf2 does on a jump back in time); when the next scan continues the old clock it was a lone
+outlier. So no stamp can lock the later valid scans out.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import logging
 import time
 from collections import Counter
@@ -31,6 +42,34 @@ log = logging.getLogger(__name__)
 # ground 0.01-0.04 m (docs/robustness.md).
 FLAT_CLOUD_STD_M = 0.05
 DEGENERATE_STATUS = 'fallback_degenerate'
+# Why a scan can be rejected before registration (FrameResult.status is 'rejected_<reason>').
+REJECTION_REASONS = ('empty', 'degenerate', 'out_of_order', 'clock_jump')
+# Accepted scans that restarted the clock: counted in status_counts beside the statuses.
+CLOCK_RESET = 'clock_reset'
+# After a scan this big, give the freed heap back to the OS at the next call: glibc keeps it
+# otherwise (a 3-million-point scan left +37 MB RSS for good, docs/robustness.md).
+TRIM_AFTER_POINTS = 500_000
+
+
+def _malloc_trim():
+    """glibc's malloc_trim(0) when available (a no-op elsewhere)."""
+    name = ctypes.util.find_library('c')
+    try:
+        trim = ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        trim = None
+    return (lambda: trim(0)) if trim is not None else (lambda: 0)
+
+
+release_free_memory = _malloc_trim()
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Why a scan was not registered: a reason from REJECTION_REASONS and a log line."""
+
+    reason: str
+    text: str
 
 
 @dataclass
@@ -48,10 +87,17 @@ class FrameResult:
     nu: np.ndarray | None  # per kept point, None when the filter is off
     band: np.ndarray | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    rejection: Rejection | None = None  # set when the scan was not registered
 
     @property
     def fell_back(self) -> bool:
+        """Registration fell back to the motion prediction."""
         return self.status.startswith('fallback')
+
+    @property
+    def accepted(self) -> bool:
+        """False for a scan rejected before registration (its pose is the last one)."""
+        return not self.status.startswith('rejected')
 
 
 def thinnest_axis_std_m(points_xyz: np.ndarray) -> float:
@@ -83,6 +129,75 @@ class OdometryPipeline:
         self.status_counts: Counter[str] = Counter()
         self._stamps_ns: list[int] = []
         self._poses: list[np.ndarray] = []
+        # Trajectories of the odometry runs ended by a clock reset (bag loop), oldest first.
+        self.finished_segments: list[Trajectory] = []
+        self._last_accepted_ns: int | None = None
+        self._jump_candidate_ns: int | None = None  # a stamp jump waiting for confirmation
+        self._trim_pending = False
+
+    def reset(self) -> None:
+        """Re-initialise the odometry: the next scan is the first again (pose identity,
+        empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
+        self.registration.reset()
+        self._last_accepted_ns = None
+        self._jump_candidate_ns = None
+        if self._stamps_ns:
+            self.finished_segments.append(self.sensor_trajectory())
+        self._stamps_ns, self._poses = [], []
+
+    def screen(self, scan: Scan) -> Rejection | None:
+        """Why `scan` would be rejected now, or None (no state changes)."""
+        rejection, _ = self._screen(scan)
+        return rejection
+
+    def _screen(self, scan: Scan) -> tuple[Rejection | None, str]:
+        """(rejection or None, 'normal' | 'first' | 'gap' | 'clock_reset')."""
+        if len(scan) == 0:
+            return Rejection('empty', f'skipping empty scan at {scan.stamp_ns} ns (no finite '
+                             'point)'), ''
+        if not np.ptp(scan.points_xyz, axis=0).max() > 0.0:
+            # Every point in one spot: a driver glitch, not geometry (ICP would see one voxel).
+            return Rejection('degenerate', f'skipping scan at {scan.stamp_ns} ns: all '
+                             f'{len(scan)} points are identical'), ''
+        last = self._last_accepted_ns
+        if last is None:
+            return None, 'first'
+        max_gap_ns = self.config.registration.max_gap_s * 1e9
+        stamp = int(scan.stamp_ns)
+        if 0 < stamp - last <= max_gap_ns:
+            return None, 'normal'
+        candidate = self._jump_candidate_ns
+        if candidate is not None and 0 < stamp - candidate <= max_gap_ns:
+            return None, ('gap' if stamp > last else CLOCK_RESET)
+        if stamp <= last:
+            return Rejection('out_of_order', f'skipping scan stamped {stamp} ns, not after the '
+                             f'previous one ({last} ns)'), ''
+        return Rejection('clock_jump', f'holding back scan stamped {stamp} ns, '
+                         f'{(stamp - last) * 1e-9:.1f} s after the previous one: accepted only '
+                         'if the next scan continues from it'), ''
+
+    def _admit(self, scan: Scan) -> Rejection | None:
+        """Screen `scan` and commit the decision to the acceptance state."""
+        rejection, kind = self._screen(scan)
+        stamp = int(scan.stamp_ns)
+        if rejection is not None:
+            self.status_counts[f'rejected_{rejection.reason}'] += 1
+            last = self._last_accepted_ns
+            if (rejection.reason in ('out_of_order', 'clock_jump') and last is not None
+                    and abs(stamp - last) > self.config.registration.max_gap_s * 1e9):
+                self._jump_candidate_ns = stamp
+            return rejection
+        if kind == CLOCK_RESET:
+            log.warning('the clock went back from %d to %d ns and stayed (a bag played in a '
+                        'loop?): the odometry starts over', self._last_accepted_ns, stamp)
+            self.status_counts[CLOCK_RESET] += 1
+            self.reset()
+        elif kind == 'gap':
+            log.warning('the stamps jumped by %.1f s and stayed: re-acquiring the motion',
+                        (stamp - self._last_accepted_ns) * 1e-9)
+        self._last_accepted_ns = stamp
+        self._jump_candidate_ns = None
+        return None
 
     @property
     def use_filter(self) -> bool:
@@ -95,9 +210,18 @@ class OdometryPipeline:
 
     def register_frame(self, scan: Scan, freqs: PointFrequencies | None = None
                        ) -> FrameResult:
-        """One scan through crop, filter, registration. `freqs`: frequencies of the
-        cropped scan computed earlier (the band search re-filters them with many masks)."""
+        """One scan through acceptance, crop, filter, registration. `freqs`: frequencies of the
+        cropped scan computed earlier (the band search re-filters them with many masks).
+        A rejected scan gives a result with status 'rejected_<reason>' and the last pose."""
         t0 = time.perf_counter()
+        if self._trim_pending:
+            release_free_memory()
+            self._trim_pending = False
+        self._trim_pending = len(scan) > TRIM_AFTER_POINTS
+        # 0. Acceptance: empty, degenerate, stamps out of order or jumping.
+        rejection = self._admit(scan)
+        if rejection is not None:
+            return self._rejected(scan, rejection)
         # 1. Range crop: drop the robot's own body and far, sparse returns.
         cropped = self._crop(scan)
         t1 = time.perf_counter()
@@ -117,12 +241,9 @@ class OdometryPipeline:
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
         flat_std_m = thinnest_axis_std_m(kept.points_xyz)
         if flat_std_m < FLAT_CLOUD_STD_M:
-            # Registration with no points takes its own fallback path: prediction, inflated
-            # covariance, the reference map untouched.
             log.debug('scan at %d ns is flat (thinnest axis std %.3f m): using the motion '
                       'prediction', scan.stamp_ns, flat_std_m)
-            reg = self.registration.register(np.zeros((0, 3)), scan.stamp_ns)
-            reg.status = DEGENERATE_STATUS
+            reg = self.registration.advance_with_prediction(scan.stamp_ns, DEGENERATE_STATUS)
         else:
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
                                              kept.time_offset_s)
@@ -139,6 +260,16 @@ class OdometryPipeline:
             n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
             timings_s={'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
                        'pipeline': t3 - t0})
+
+    def _rejected(self, scan: Scan, rejection: Rejection) -> FrameResult:
+        T_world_sensor = self.registration.T_world_sensor.copy()
+        return FrameResult(
+            stamp_ns=int(scan.stamp_ns), T_world_sensor=T_world_sensor,
+            T_odom_base=self.T_base_sensor @ T_world_sensor @ self.T_sensor_base,
+            covariance=np.diag(self.registration.fallback_var),
+            status=f'rejected_{rejection.reason}', n_points_in=len(scan), n_points_kept=0,
+            filtered=scan.select(np.zeros(0, dtype=np.int64)), nu=None, band=None,
+            rejection=rejection)
 
     def _precomputed_keep(self, cropped: Scan, freqs: PointFrequencies) -> np.ndarray:
         if len(freqs) != len(cropped):

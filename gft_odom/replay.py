@@ -13,6 +13,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -51,6 +52,8 @@ class ReplayResult:
     map_points_world: np.ndarray | None = None  # (M, 3) sample for figures
     map_nu: np.ndarray | None = None  # (M,) nan when the filter is off
     skipped_messages: int = 0
+    # Scans refused by the pipeline's acceptance, by reason (empty, out_of_order, ...).
+    rejected: dict[str, int] = field(default_factory=dict)
     ground_truth: Trajectory | None = None
     ground_truth_is_gps: bool = False
 
@@ -89,10 +92,17 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     latency, points_in, points_kept, statuses = [], [], [], []
     stages: dict[str, list[float]] = {}
     map_xyz, map_nu = [], []
+    rejected: Counter[str] = Counter()
     with ScanBagReader(list(bag_paths), topic=topic) as reader:
         total = scan_count(reader, max_scans)
         for i, (scan, t_decode) in enumerate(timed_scans(reader, total)):
             result = pipeline.register_frame(scan)
+            if progress is not None:
+                progress(i + 1, total)
+            if not result.accepted:
+                log.warning('%s', result.rejection.text)
+                rejected[result.rejection.reason] += 1
+                continue
             latency.append(t_decode + result.timings_s['pipeline'])
             for name, value in {'decode': t_decode, **result.timings_s}.items():
                 stages.setdefault(name, []).append(value)
@@ -100,13 +110,16 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             points_kept.append(result.n_points_kept)
             statuses.append(result.status)
             _sample_map(result, rng, map_xyz, map_nu)
-            if progress is not None:
-                progress(i + 1, total)
         skipped = getattr(reader, 'skipped', 0)
     if not statuses:
         # Nothing to evaluate or write: an empty results folder would look like a success.
         raise BagError(f'no decodable scan on {topic} in {", ".join(map(str, bag_paths))} '
-                       f'({skipped} message(s) skipped as malformed)')
+                       f'({skipped} message(s) skipped as malformed, '
+                       f'{sum(rejected.values())} rejected)')
+    if pipeline.finished_segments:
+        log.warning('the clock went back %d time(s): results are for the last run of the '
+                    'odometry (%d of %d registered scans)', len(pipeline.finished_segments),
+                    len(pipeline.sensor_trajectory()), len(statuses))
     replay = ReplayResult(
         sensor_trajectory=pipeline.sensor_trajectory(),
         base_trajectory=pipeline.base_trajectory(),
@@ -114,7 +127,7 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         points_in=np.asarray(points_in), points_kept=np.asarray(points_kept), statuses=statuses,
         map_points_world=np.concatenate(map_xyz) if map_xyz else np.zeros((0, 3)),
         map_nu=np.concatenate(map_nu) if map_nu else np.zeros(0), skipped_messages=skipped,
-        ground_truth=ground_truth,
+        rejected=dict(rejected), ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
     replay.metrics = summarize(replay, config)
     return replay
@@ -158,6 +171,7 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
         # Why: fallback_too_few_points / _low_fitness / _diverged / _degenerate (flat cloud).
         'status_counts': {s: replay.statuses.count(s) for s in sorted(set(replay.statuses))},
         'skipped_messages': int(replay.skipped_messages),
+        'rejected_scans': {k: int(v) for k, v in sorted(replay.rejected.items())},
     }
     for stage, values in replay.stage_s.items():
         metrics[f'{stage}_median_ms'] = float(np.median(values) * 1e3)

@@ -43,7 +43,7 @@ def run_sequence(seq: SequenceCache, config: GftOdomConfig, mask: BandMask | Non
     for i in range(len(seq)):
         scan = seq.scan(i)
         freqs = seq.frequencies(i, mask.n_bands) if mask is not None else None
-        result = pipeline.register_frame(scan, freqs=freqs)
+        result = pipeline.register_frame(scan, freqs=freqs)  # rejected scans keep nothing
         kept += result.n_points_kept
         in_total += int(seq.points_in[i])
     estimate = pipeline.sensor_trajectory()

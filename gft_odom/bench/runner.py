@@ -111,7 +111,8 @@ def method_config(base: GftOdomConfig, method: str) -> GftOdomConfig:
 
 
 def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfig):
-    """A callable scan -> (stamp_ns, T_world_sensor, n_points_in, n_points_kept, status)."""
+    """A callable scan -> (stamp_ns, T_world_sensor, n_points_in, n_points_kept, status),
+    or None for a scan the pipeline's acceptance rejected (as the node would)."""
     if METHODS[method][1] is None:
         kiss = KissIcpOdometry(kiss_config)
 
@@ -123,6 +124,8 @@ def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfi
 
     def step(scan):
         r = pipeline.register_frame(scan)
+        if not r.accepted:
+            return None
         return r.stamp_ns, r.T_world_sensor, r.n_points_in, r.n_points_kept, r.status
     return step
 
@@ -139,7 +142,10 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
     with ScanBagReader([sequence.bag_path]) as reader:
         for scan, t_decode in timed_scans(reader, scan_count(reader, max_scans)):
             t0 = time.perf_counter()
-            stamp_ns, T_world_sensor, n_in, n_kept, status = step(scan)
+            out = step(scan)
+            if out is None:
+                continue
+            stamp_ns, T_world_sensor, n_in, n_kept, status = out
             latency.append(t_decode + time.perf_counter() - t0)
             stamps.append(stamp_ns)
             poses.append(T_world_sensor)

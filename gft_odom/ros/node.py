@@ -169,34 +169,28 @@ class FilterOdomNode(Node):
             + ', '.join(f'{k} {1e3 * v:.1f} ms' for k, v in result.timings_s.items()))
 
     def _count_missed(self, stamp_ns: int) -> None:
-        """Sweeps that never reached this callback (queue overwritten, link loss)."""
+        """Sweeps that never reached this callback (queue overwritten, link loss); a step of
+        the stamps beyond registration.max_gap_s is a gap or a clock jump, not lost sweeps."""
         last = self.last_received_stamp_ns
-        if last is not None and stamp_ns > last:
-            period_ns = self.config.registration.scan_period_s * 1e9
-            missed = int(round((stamp_ns - last) / period_ns)) - 1
-            if missed > 0:
-                self._warn('missed', f'{missed} sweep(s) never arrived before the one at '
-                           f'{stamp_ns} ns (processing slower than the sensor, or lost)')
-                self.counters['missed'] += missed - 1
-        if last is None or stamp_ns > last:
-            self.last_received_stamp_ns = stamp_ns
+        self.last_received_stamp_ns = stamp_ns
+        if last is None or not 0 < stamp_ns - last <= self.config.registration.max_gap_s * 1e9:
+            return
+        period_ns = self.config.registration.scan_period_s * 1e9
+        missed = int(round((stamp_ns - last) / period_ns)) - 1
+        if missed > 0:
+            self._warn('missed', f'{missed} sweep(s) never arrived before the one at '
+                       f'{stamp_ns} ns (processing slower than the sensor, or lost)')
+            self.counters['missed'] += missed - 1
 
     def _accept(self, scan) -> bool:
-        """Drop scans that would corrupt the odometry or that arrive too late to matter."""
-        if len(scan) == 0:
-            self._warn('empty', f'skipping empty scan at {scan.stamp_ns} ns (no finite point)')
-            return False
-        extent_m = np.ptp(scan.points_xyz, axis=0).max()
-        if not extent_m > 0.0:
-            # Every point in one spot: a driver glitch, not geometry (ICP would see one voxel).
-            self._warn('degenerate', f'skipping scan at {scan.stamp_ns} ns: all {len(scan)} '
-                       f'points are identical')
+        """The pipeline's acceptance (the replay and the offline tools apply the same), then
+        the node's own checks: a scan that arrives too late to matter, a changed frame."""
+        rejection = self.pipeline.screen(scan)
+        if rejection is not None:
+            self.pipeline.register_frame(scan)  # counts it, remembers a stamp jump
+            self._warn(rejection.reason, rejection.text)
             return False
         self._count_missed(scan.stamp_ns)
-        if self.last_stamp_ns is not None and scan.stamp_ns <= self.last_stamp_ns:
-            self._warn('out_of_order', f'skipping scan stamped {scan.stamp_ns} ns, not after '
-                       f'the previous one ({self.last_stamp_ns} ns)')
-            return False
         now_ns = self.get_clock().now().nanoseconds
         age_s = (now_ns - scan.stamp_ns) * 1e-9
         if now_ns > 0 and age_s > self.config.node.max_scan_age_s:
