@@ -5,12 +5,13 @@ a smear of about 0.1 s of motion. We undo it by expressing every point in the se
 ONE instant, the sweep's `header.stamp` (time offset 0), so the pose that registration estimates
 is the sensor pose at the stamp the pipeline publishes.
 
-Time offsets come from the velodyne `time` field when the bag has it (offsets relative to
-`header.stamp`, negative when the driver stamps with the last packet), otherwise from the
-azimuth. VLP-16 convention assumed (velodyne manual and driver): the head spins clockwise seen
-from above, i.e. in the ROS sensor frame (x forward, y left, z up) the angle `atan2(y, x)`
-DECREASES with time; the driver emits points in firing order, so the first point of the cloud
-is the start of the sweep.
+Time offsets come from the per-point time field when the bag has it (offsets relative to
+`header.stamp`, negative when the driver stamps with the last packet, as the ROS velodyne
+driver's [-0.1, 0] s; its unit is found from the values: s, ms, us, ns, or absolute times),
+otherwise from the azimuth. VLP-16 convention assumed (velodyne manual and driver): the head
+spins clockwise seen from above, i.e. in the ROS sensor frame (x forward, y left, z up) the
+angle `atan2(y, x)` DECREASES with time; the driver emits points in firing order, so the first
+point of the cloud is the start of the sweep.
 """
 
 from __future__ import annotations
@@ -19,6 +20,37 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 TWO_PI = 2.0 * np.pi
+# Units a per-point time field comes in (velodyne float s, Ouster uint32 ns, some drivers us).
+TIME_UNITS_S = (('s', 1.0), ('ms', 1e-3), ('us', 1e-6), ('ns', 1e-9))
+# No offset within one sweep is this far from the stamp (a VLP-16 sweep lasts 0.05-0.2 s):
+# the unit is the first that puts every offset inside it. Sweeps are 3 decades apart in the
+# four units, so a full sweep is never ambiguous.
+MAX_TIME_OFFSET_S = 1.0
+
+
+def time_offsets_from_field(values: np.ndarray, stamp_ns: int) -> tuple[np.ndarray | None, str]:
+    """Per-point offsets (s) from the stamp of a per-point time field, and the unit found.
+
+    Relative offsets in s, ms, us or ns (either sign: [0, 0.1] s from a sweep-start stamp,
+    [-0.1, 0] s from a sweep-end stamp); absolute times in s or ns since the epoch (Hesai,
+    Livox) have the stamp subtracted. (None, 'unknown') when no reading fits.
+    """
+    raw = np.asarray(values)
+    finite = raw[np.isfinite(raw)] if raw.dtype.kind == 'f' else raw
+    if finite.size == 0:
+        return np.zeros(raw.shape[0]), 's'
+    peak = float(np.max(np.abs(finite.astype(np.float64))))
+    for name, scale in TIME_UNITS_S:
+        if peak * scale <= MAX_TIME_OFFSET_S:
+            return raw.astype(np.float64) * scale, name
+    median = float(np.median(finite.astype(np.float64)))
+    if abs(median - stamp_ns * 1e-9) <= MAX_TIME_OFFSET_S:
+        return raw.astype(np.float64) - stamp_ns * 1e-9, 'absolute_s'
+    if abs(median * 1e-9 - stamp_ns * 1e-9) <= MAX_TIME_OFFSET_S:
+        if raw.dtype.kind in 'iu':  # exact in integers before the float conversion
+            return (raw.astype(np.int64) - int(stamp_ns)).astype(np.float64) * 1e-9, 'absolute_ns'
+        return (raw.astype(np.float64) - float(stamp_ns)) * 1e-9, 'absolute_ns'
+    return None, 'unknown'
 
 
 def azimuth_time_offsets(points_xyz: np.ndarray, scan_period_s: float,

@@ -18,6 +18,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from gft_odom.core.deskew import time_offsets_from_field
 from gft_odom.core.types import Scan
 from gft_odom.errors import CodecError
 
@@ -269,8 +270,9 @@ def decode_scan(msg: Any) -> Scan:
     """A PointCloud2 as a Scan: x, y, z required; intensity, ring, time when present.
 
     Points whose x, y or z is not finite (the NaN no-returns of organized clouds) are dropped.
-    A `time` field (velodyne: seconds since the sweep start) becomes `time_offset_s`; an
-    integer `t` field (Ouster: nanoseconds) is converted to seconds.
+    A `time` field (velodyne: seconds) or an integer `t` field (Ouster: nanoseconds) becomes
+    `time_offset_s`, seconds from the stamp, its unit found from the values
+    (`gft_odom.core.deskew.time_offsets_from_field`: s, ms, us, ns or absolute times).
     """
     # garbage bytes (signalling NaNs, huge values) must not flood the log with numpy warnings
     with np.errstate(invalid='ignore', over='ignore'):
@@ -312,9 +314,15 @@ def _decode_scan(msg: Any) -> Scan:
 
     intensity = scalar('intensity')
     ring = scalar('ring')
-    time_s = scalar('time')
-    if time_s is None and (t_ns := scalar('t')) is not None and t_ns.dtype.kind in 'iu':
-        time_s = t_ns.astype(np.float64) * 1e-9
+    raw_time = scalar('time')
+    if raw_time is None and (t := scalar('t')) is not None and t.dtype.kind in 'iu':
+        raw_time = t
+    time_s = None
+    if raw_time is not None:
+        time_s, unit = time_offsets_from_field(raw_time, stamp_ns)
+        if time_s is None:
+            log.warning('per-point time of the scan at %d ns fits no unit (|t| up to %.3g): '
+                        'ignored', stamp_ns, float(np.nanmax(np.abs(raw_time.astype(float)))))
     return Scan(
         stamp_ns=stamp_ns, points_xyz=points_xyz,
         intensity=None if intensity is None else intensity.astype(np.float32, copy=False),
