@@ -134,11 +134,13 @@ class OdometryPipeline:
         self._last_accepted_ns: int | None = None
         self._jump_candidate_ns: int | None = None  # a stamp jump waiting for confirmation
         self._trim_pending = False
+        self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
         """Re-initialise the odometry: the next scan is the first again (pose identity,
         empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
         self.registration.reset()
+        self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
         if self._stamps_ns:

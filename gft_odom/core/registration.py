@@ -52,6 +52,11 @@ ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
             'fallback_diverged', 'fallback_implausible', 'fallback_degenerate')
+# Re-acquisition's fine ICP may iterate this many times longer than a normal match.
+RECOVERY_ITERATIONS_FACTOR = 4
+# Matches whose median fitness min_relative_fitness refers to (and the fewest it needs).
+RECENT_FITNESS_WINDOW = 10
+RECENT_FITNESS_MIN = 3
 # Poses trusted enough to update the velocity and the reference (map or previous scan).
 TRUSTED_STATUSES = ('first', 'ok', 'recovered')
 
@@ -90,6 +95,11 @@ class RegistrationConfig:
     min_points: int = 100
     # open3d fitness = inlier pairs / source points; below it the result is not trusted.
     min_fitness: float = 0.3
+    # Default mode: a fitness below this fraction of the median of the last matches is not
+    # trusted either. Scan-to-map fitness is steady (0.8-0.97 on the simulated drives); a
+    # copy of a scan rotated 90 deg still reached 0.48 near the prediction, enough for
+    # min_fitness, and would have entered the map at a keyframe.
+    min_relative_fitness: float = 0.7
     # Largest correction to the constant-velocity prediction per scan period: a Jackal
     # (2 m/s, ~2 rad/s top speed) cannot change its velocity by more within 0.1 s.
     max_translation_jump_m: float = 0.5
@@ -156,8 +166,9 @@ class RegistrationConfig:
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
-        if not 0.0 <= self.min_fitness <= 1.0:
-            raise ConfigError(f'min_fitness must be in [0, 1], got {self.min_fitness}')
+        for name in ('min_fitness', 'min_relative_fitness'):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
         if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
             raise ConfigError(f'motion_margin must be a finite number >= 0, got '
                               f'{self.motion_margin}')
@@ -255,6 +266,11 @@ class ScanRegistration:
         self.criteria = o3d_reg.ICPConvergenceCriteria(
             relative_fitness=config.convergence_relative,
             relative_rmse=config.convergence_relative, max_iteration=config.max_iterations)
+        # Re-acquisition starts further away: more iterations to converge.
+        self._recovery_criteria = o3d_reg.ICPConvergenceCriteria(
+            relative_fitness=config.convergence_relative,
+            relative_rmse=config.convergence_relative,
+            max_iteration=RECOVERY_ITERATIONS_FACTOR * config.max_iterations)
         # The paper's ICP is plain least squares; ours is robust.
         kernel_name = 'none' if config.mode == 'paper' else config.robust_kernel
         self.kernel = _kernel(kernel_name, config.robust_kernel_scale_m)
@@ -278,6 +294,7 @@ class ScanRegistration:
         # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
         self.velocity = np.zeros(6)
         self._twists: deque[np.ndarray] = deque(maxlen=self.config.deskew_velocity_window)
+        self._fitness: deque[float] = deque(maxlen=RECENT_FITNESS_WINDOW)  # trusted matches
         self.last_stamp_ns: int | None = None
         self.n_registered = 0
         self.n_fallbacks = 0
@@ -422,6 +439,8 @@ class ScanRegistration:
         T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
         if status in TRUSTED_STATUSES:
             self._update_reference(source_xyz, T_new, status)
+            if match is not None:
+                self._fitness.append(fitness)
             self.consecutive_fallbacks = 0
             if status == 'ok' and 0.0 < dt_s <= self.config.max_gap_s:
                 self.velocity = self.capped(twist_of(T_prev_curr, dt_s))
@@ -501,7 +520,9 @@ class ScanRegistration:
         fitness, rmse = float(result.fitness), float(result.inlier_rmse)
         if not np.all(np.isfinite(T_est)):
             return 'fallback_diverged', T_pred, fitness, rmse, None
-        if fitness < cfg.min_fitness:
+        if fitness < cfg.min_fitness or (
+                self.mode == 'default' and len(self._fitness) >= RECENT_FITNESS_MIN
+                and fitness < cfg.min_relative_fitness * float(np.median(self._fitness))):
             return 'fallback_low_fitness', T_pred, fitness, rmse, None
         if not self.is_plausible(invert_transform(self.T_world_sensor) @ T_est, dt_s):
             log.debug('ICP implies motion beyond the bounds over %.3f s', dt_s)
@@ -515,21 +536,24 @@ class ScanRegistration:
         return 'ok', T_est, fitness, rmse, self._icp_information(source_xyz, target, result, rmse)
 
     def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, dt_s: float):
-        """Re-acquire against the map from zero motion and from the velocity before the loss
-        (capped): a coarse ICP with a widened correspondence distance, then the normal one.
-        The plausible fit with the best fitness wins; no jump check (the guesses are rough)."""
+        """Re-acquire against the map from a few initial guesses: zero motion, the velocity
+        before the loss (capped), and its straight-line part (a turn rate extrapolated over a
+        long gap throws the guess sideways). From each: a coarse ICP with a widened
+        correspondence distance, then the normal one with more iterations. The plausible fit
+        with the best fitness wins; no jump check (the guesses are rough)."""
         cfg = self.config
         source, target = to_cloud(source_xyz), self.local_map.cloud
         guesses = [np.zeros(6)]
-        if np.any(self._velocity_before_loss):
-            guesses.append(self.capped(self._velocity_before_loss))
+        before = self.capped(self._velocity_before_loss)
+        if np.any(before[3:]):
+            guesses += [before, np.r_[0.0, 0.0, 0.0, before[3:]]]
         wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
         best, status = None, 'fallback_low_fitness'
         for velocity in guesses:
             init = self.T_world_sensor @ delta_of_twist(velocity, max(dt_s, 0.0))
             coarse = self._icp(source, target, init, wide_m)
             result = self._icp(source, target, np.asarray(coarse.transformation),
-                               cfg.max_correspondence_distance_m)
+                               cfg.max_correspondence_distance_m, self._recovery_criteria)
             T_est = np.asarray(result.transformation)
             if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
                 continue
@@ -545,12 +569,13 @@ class ScanRegistration:
         return ('recovered', T_est, float(result.fitness), rmse,
                 self._icp_information(source_xyz, target, result, rmse), velocity)
 
-    def _icp(self, source, target, init, distance_m: float):
+    def _icp(self, source, target, init, distance_m: float, criteria=None):
+        criteria = self.criteria if criteria is None else criteria
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
                 self.config.gicp_epsilon, self.kernel)
             return o3d_reg.registration_generalized_icp(source, target, distance_m, init,
-                                                        estimation, self.criteria)
+                                                        estimation, criteria)
         if self.estimation == 'point_to_plane':
             if not target.has_normals():
                 target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(
@@ -558,8 +583,7 @@ class ScanRegistration:
             estimation = o3d_reg.TransformationEstimationPointToPlane(self.kernel)
         else:
             estimation = o3d_reg.TransformationEstimationPointToPoint()
-        return o3d_reg.registration_icp(source, target, distance_m, init, estimation,
-                                        self.criteria)
+        return o3d_reg.registration_icp(source, target, distance_m, init, estimation, criteria)
 
     def _icp_information(self, source_xyz, target, result, rmse) -> np.ndarray | None:
         """Gauss-Newton information J^T J / rmse^2 of the final pairs, in the target's axes.

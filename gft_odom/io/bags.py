@@ -346,8 +346,10 @@ class BagWriter:
             raise BagError(f'cannot write {msgtype} on {topic} to {self.path}: {exc}') from None
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
-    def write_cloud(self, topic: str, stamp_ns: int, blob: CloudBlob, frame_id: str) -> None:
-        """One sensor_msgs/PointCloud2 made from the codec's output."""
+    def write_cloud(self, topic: str, stamp_ns: int, blob: CloudBlob, frame_id: str,
+                    log_time_ns: int | None = None) -> None:
+        """One sensor_msgs/PointCloud2 made from the codec's output; logged at `log_time_ns`
+        (default: its stamp), so a bag can hold a mis-stamped scan where it arrived."""
         types = self.typestore.types
         field_type = types['sensor_msgs/msg/PointField']
         msg = types[POINTCLOUD2](
@@ -358,7 +360,8 @@ class BagWriter:
             is_bigendian=bool(blob.is_bigendian), point_step=int(blob.point_step),
             row_step=int(blob.row_step), data=np.frombuffer(bytes(blob.data), dtype=np.uint8),
             is_dense=bool(blob.is_dense))
-        self.write_message(topic, POINTCLOUD2, stamp_ns, msg)
+        self.write_message(topic, POINTCLOUD2, stamp_ns if log_time_ns is None else log_time_ns,
+                           msg)
 
     def write_odometry(self, topic: str, stamp_ns: int, T_world_body: np.ndarray,
                        frame_id: str = 'map', child_frame_id: str = 'gps',
