@@ -283,7 +283,8 @@ def main(argv=None) -> int:
                   for k, v in figures.items()))
     _plot(out / 'soak_node.png', rss_t, rss_v, sent_t, latency_ms, figures, error_t,
           errors if len(got) >= 3 else np.zeros(0))
-    shutil.copyfile(out / 'soak_node.png', docs / 'soak_node.png')
+    if (docs / 'soak_node.png').resolve() != (out / 'soak_node.png').resolve():
+        shutil.copyfile(out / 'soak_node.png', docs / 'soak_node.png')
     print(f'node log: {node_log}')
     print(json.dumps(figures, indent=2))
     for failure in failures:
