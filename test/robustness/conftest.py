@@ -2,7 +2,7 @@
 
 `hostile_cases(previous, before_previous)` returns a table of (name, expected kind, message):
 the kind is the counter the node must bump (`malformed`, `empty`, `degenerate`,
-`out_of_order`). None of them may change the odometry. `previous` / `before_previous` are the
+`out_of_order`, `clock_jump`). None of them may change the odometry. `previous` / `before_previous` are the
 last two valid scans the node processed (for the repeated and out-of-order stamps).
 """
 
@@ -132,6 +132,8 @@ def make_hostile_cases(previous, before_previous) -> list[tuple[str, str, object
     add('stamp_zero', 'out_of_order', _cloud(_xyz(n, 1), 0))
     add('stamp_one_ns_before', 'out_of_order', _cloud(_xyz(n, 2), t_prev - 1))
     add('repeated_stamp_other_frame', 'out_of_order', _cloud(_xyz(n, 3), t_prev, 'ouster'))
+    # A lone stamp an hour ahead: held back, then dropped when the next scan continues the clock.
+    add('stamp_one_hour_ahead', 'clock_jump', _cloud(_xyz(n, 6), t_prev + 3600 * 10**9))
     # Big clouds with the previous stamp: decoded, then refused. Over best-effort DDS the
     # 2-million-point one (~24 MB) is usually lost in transport; 300 k points (3.6 MB) arrive.
     add('300k_points_repeated_stamp', 'out_of_order', _cloud(_xyz(300_000, 5), t_prev))
