@@ -209,6 +209,13 @@ def test_default_config_is_valid_and_from_config_builds():
     ('max_iterations', 0, 'max_iterations'),
     ('min_fitness', 1.5, 'min_fitness'),
     ('fallback_std_m', 0.001, 'fallback_std'),
+    ('max_speed_mps', 0.0, 'max_speed_mps'),
+    ('max_yaw_rate_rps', float('inf'), 'max_yaw_rate_rps'),
+    ('motion_margin', -0.1, 'motion_margin'),
+    ('max_gap_s', 0.05, 'max_gap_s'),
+    ('max_consecutive_fallbacks', 0, 'max_consecutive_fallbacks'),
+    ('recovery_correspondence_factor', 0.5, 'recovery_correspondence_factor'),
+    ('min_relative_fitness', 1.5, 'min_relative_fitness'),
 ])
 def test_invalid_config_names_the_field(field, value, message):
     cfg = dataclasses.replace(RegistrationConfig(), **{field: value})
@@ -507,3 +514,45 @@ def test_scale_delta_doubles_a_constant_twist():
     assert transform_magnitude(T2)[1] == pytest.approx(0.2)
     np.testing.assert_allclose(T2[:3, 3], [0.4, 0.0, 0.0])
     np.testing.assert_allclose(scale_delta(T, 0.0), np.eye(4), atol=1e-15)
+
+
+def test_motion_beyond_the_physical_bounds_is_implausible_and_stays_out_of_the_map(static_pair):
+    a, b, T_ab = static_pair
+    # b is 0.26 m from a, 0.1 s later: 2.6 m/s, within 2.0 m/s x 1.5 but not 1.0 m/s x 1.5.
+    reg = registration(max_speed_mps=1.0)
+    reg.register(a['points'], a['stamp_ns'])
+    map_before = reg.local_map.points_xyz.copy()
+    result = reg.register(b['points'], b['stamp_ns'])
+    assert result.status == 'fallback_implausible' and result.fell_back
+    np.testing.assert_allclose(result.T_world_sensor, np.eye(4), atol=1e-12)
+    np.testing.assert_array_equal(reg.local_map.points_xyz, map_before)
+    np.testing.assert_array_equal(reg.velocity, np.zeros(6))
+    default = registration()
+    assert default.is_plausible(T_ab, 0.1) and not default.is_plausible(T_ab, 0.01)
+
+
+def test_prediction_is_per_second_and_capped_by_the_bounds():
+    reg = registration()
+    capped = reg.capped(np.array([0.0, 0.0, 10.0, 3.0, 4.0, 0.0]))
+    np.testing.assert_allclose(capped, [0.0, 0.0, 4.0, 1.2, 1.6, 0.0])
+    reg.velocity = np.array([0.0, 0.0, 0.5, 1.0, 0.0, 0.0])
+    distance_m, angle_rad = transform_magnitude(reg.predicted_delta(0.05))
+    assert distance_m == pytest.approx(0.05) and angle_rad == pytest.approx(0.025)
+    np.testing.assert_array_equal(reg.predicted_delta(-0.1), np.eye(4))
+
+
+def test_advance_with_prediction_is_a_counted_fallback(drive):
+    reg = _moving_registration(drive)
+    dt_s = (drive[4]['stamp_ns'] - drive[3]['stamp_ns']) * 1e-9
+    expected = reg.T_world_sensor @ reg.predicted_delta(dt_s)
+    result = reg.advance_with_prediction(drive[4]['stamp_ns'])
+    assert result.status == 'fallback_degenerate' and reg.n_fallbacks == 1
+    np.testing.assert_allclose(result.T_world_sensor, expected, atol=1e-12)
+    with pytest.raises(RegistrationError, match='fallback status'):
+        reg.advance_with_prediction(drive[5]['stamp_ns'], 'ok')
+
+
+def test_every_status_is_listed():
+    from gft_odom.core.registration import STATUSES, TRUSTED_STATUSES
+    assert set(TRUSTED_STATUSES) < set(STATUSES)
+    assert {'fallback_degenerate', 'fallback_implausible', 'recovered'} <= set(STATUSES)
