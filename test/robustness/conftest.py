@@ -2,8 +2,9 @@
 
 `hostile_cases(previous, before_previous)` returns a table of (name, expected kind, message):
 the kind is the counter the node must bump (`malformed`, `empty`, `degenerate`,
-`out_of_order`, `clock_jump`). None of them may change the odometry. `previous` / `before_previous` are the
-last two valid scans the node processed (for the repeated and out-of-order stamps).
+`out_of_order`, `clock_jump`). None of them may change the odometry. `previous` /
+`before_previous` are the last two valid scans the node processed (for the repeated and
+out-of-order stamps).
 """
 
 from __future__ import annotations
