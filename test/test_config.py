@@ -35,6 +35,27 @@ def test_every_params_file_loads_with_known_keys_and_types(path):
             assert isinstance(value, float), f'{path.name}: {key} must be written as a float'
 
 
+MODE_OVERLAYS = {
+    'paper_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (3, 4),
+                            'registration.mode': 'paper'},
+    'default_mode_gft.yaml': {'spectral.n_bands': 5, 'spectral.band_mask': (1, 2, 3)},
+}
+
+
+@pytest.mark.parametrize('name', sorted(MODE_OVERLAYS))
+def test_mode_configs_are_overlays_on_the_defaults(name):
+    path = CONFIG_DIR / name
+    assert len(path.read_text().splitlines()) <= 25
+    overrides = MODE_OVERLAYS[name]
+    assert {k: tuple(v) if isinstance(v, list) else v
+            for k, v in read_params_file(path).items()} == overrides
+    loaded = flatten(load_config(path))
+    defaults = flatten(GftOdomConfig())
+    for key, value in loaded.items():
+        assert value == overrides.get(key, defaults[key]), key
+    assert all(defaults[key] != value for key, value in overrides.items())
+
+
 def test_round_trip_through_a_params_file(tmp_path):
     config = with_values(GftOdomConfig(), {'spectral.tau_m': 0.4, 'spectral.band_mask': [1, 9],
                                            'registration.mode': 'paper'})

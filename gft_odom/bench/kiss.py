@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gft_odom.config import PipelineConfig
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
 
@@ -25,7 +26,7 @@ class KissIcpConfig:
     # VLP-16 rated range (kiss-icp's own default, too).
     max_range_m: float = 100.0
     # Same crop as our pipeline: the Jackal's body and a walking operator.
-    min_range_m: float = 0.5
+    min_range_m: float = PipelineConfig.min_range_m
     # kiss-icp's rule is max_range / 100 (1.0 m at 100 m); the bench's tuning seeds decide.
     voxel_size_m: float = 1.0
     max_points_per_voxel: int = 20
