@@ -6,13 +6,12 @@ works without a display.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from gft_odom.core.trajectory import Trajectory
+from gft_odom.io.atomic import write_atomic
 
 # Paper Figure 3: low graph frequencies dark blue, high frequencies light green.
 FREQUENCY_COLOURS = ('#08215e', '#1b4f9c', '#2a8fa8', '#55c49a', '#b6f08c')
@@ -33,14 +32,10 @@ def _pyplot():
 def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
     """Save atomically (temp file then rename) and close the figure."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip('.') or 'png', bbox_inches='tight')
-        os.replace(tmp, path)
+        write_atomic(path, lambda f: fig.savefig(f, dpi=dpi, format=path.suffix.lstrip('.')
+                                                 or 'png', bbox_inches='tight'))
     finally:
-        Path(tmp).unlink(missing_ok=True)
         _pyplot().close(fig)
     return path
 

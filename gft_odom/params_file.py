@@ -7,7 +7,6 @@ so one YAML file configures both, and every run writes its effective config back
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -15,6 +14,7 @@ import yaml
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
 from gft_odom.errors import ConfigError
+from gft_odom.io.atomic import write_text_atomic
 
 NODE_NAME = 'filter_odom_node'
 
@@ -110,17 +110,7 @@ def config_to_yaml(config: GftOdomConfig, header: str = '') -> str:
 
 def write_params_file(path: str | Path, config: GftOdomConfig, header: str = '') -> Path:
     """Write `config` atomically (temp file + rename): a reader never sees half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'w') as f:
-            f.write(config_to_yaml(config, header))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text_atomic(path, config_to_yaml(config, header))
 
 
 def packaged_params_file(name: str) -> Path:

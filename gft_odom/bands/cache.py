@@ -14,8 +14,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -27,6 +25,7 @@ from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import BagError
+from gft_odom.io.atomic import write_atomic
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.pipeline import OdometryPipeline
@@ -115,15 +114,7 @@ class SequenceCache:
         meta = {'version': CACHE_VERSION, 'name': self.name, 'key': self.key,
                 'band_counts': list(self.band_counts), 'gps': self.ground_truth_is_gps}
         arrays['meta'] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp.npz', dir=path.parent)
-        os.close(fd)
-        try:
-            np.savez(tmp, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return write_atomic(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> 'SequenceCache':

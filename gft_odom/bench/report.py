@@ -6,7 +6,6 @@ import json
 import math
 import os
 import platform
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +13,7 @@ import numpy as np
 from gft_odom.bench.runner import METHODS, BenchRun
 from gft_odom.core.metrics import ate
 from gft_odom.errors import GftOdomError
+from gft_odom.io.atomic import write_text_atomic
 from gft_odom.replay import estimate_for_ground_truth
 
 # Per-method summary columns: (title, key, format).
@@ -131,17 +131,6 @@ def bench_to_dict(bench: BenchRun, settings: dict) -> dict:
         'runs': [r.metrics for r in bench.runs],
         'profiles': bench.profiles,
     }
-
-
-def write_text_atomic(path: Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    with os.fdopen(fd, 'w') as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)  # mkstemp makes it private; results are for everyone to read
-    os.replace(tmp, path)
-    return path
 
 
 def write_json(path: Path, document: dict) -> Path:

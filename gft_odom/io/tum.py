@@ -8,8 +8,6 @@ the old file or the new one, never half of one.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +16,7 @@ from gft_odom.core.geometry import xyz_quat_from_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import GroundTruthError
 from gft_odom.io._poses import ns_to_seconds_text, seconds_text_to_ns, trajectory_from_columns
+from gft_odom.io.atomic import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -76,29 +75,10 @@ def format_tum(traj: Trajectory) -> str:
     return ''.join(line + '\n' for line in lines)
 
 
-def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write `text` to a temp file beside `path`, fsync it, then rename it over `path`."""
-    path = Path(path)
-    tmp_name = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile('w', encoding='utf-8', dir=path.parent,
-                                         prefix=f'.{path.name}.', suffix='.tmp',
-                                         delete=False) as tmp:
-            tmp_name = tmp.name
-            tmp.write(text)
-            tmp.flush()
-            os.fsync(tmp.fileno())
-        os.replace(tmp_name, path)
-        tmp_name = None
-    except OSError as exc:
-        raise GroundTruthError(f'cannot write {path}: {exc}') from None
-    finally:
-        if tmp_name is not None and os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-
-
 def write_tum(path: str | Path, traj: Trajectory) -> None:
     """Write a trajectory as a TUM file (readable by `evo_ape tum`), atomically."""
-    write_text_atomic(path, '# t x y z qx qy qz qw\n' + format_tum(traj))
+    try:
+        write_text_atomic(path, '# t x y z qx qy qz qw\n' + format_tum(traj))
+    except OSError as exc:
+        raise GroundTruthError(f'cannot write {path}: {exc}') from exc
     log.debug('wrote %d poses to %s', len(traj), path)

@@ -153,7 +153,7 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
 def _write_gt_csv(path: Path, traj: Trajectory) -> None:
     """CitrusFarm-style gt.csv: a header, then time (s, 9 decimals) x y z qx qy qz qw."""
     from gft_odom.core.geometry import xyz_quat_from_poses
-    from gft_odom.io.tum import write_text_atomic
+    from gft_odom.io.atomic import write_text_atomic
 
     xyz, quat = xyz_quat_from_poses(traj.poses)
     lines = ['timestamp,x,y,z,qx,qy,qz,qw']

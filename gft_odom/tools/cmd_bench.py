@@ -21,11 +21,11 @@ from gft_odom.bench.report import (
     markdown_page,
     plot_figures,
     write_json,
-    write_text_atomic,
 )
 from gft_odom.bench.runner import METHODS, profile_method, run_bench, simulate_sequences
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.errors import ConfigError
+from gft_odom.io.atomic import write_text_atomic
 from gft_odom.params_file import load_config
 from gft_odom.sim.motion import SCENARIOS
 from gft_odom.sim.simulator import SimConfig
