@@ -13,10 +13,9 @@ from typing import Any, Iterable
 import yaml
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
+from gft_odom.core.constants import NODE_NAME
 from gft_odom.errors import ConfigError
 from gft_odom.io.atomic import write_text_atomic
-
-NODE_NAME = 'filter_odom_node'
 
 
 def _flatten_nested(prefix: str, tree: dict, out: dict[str, Any]) -> None:

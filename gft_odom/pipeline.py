@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
-from gft_odom.core.geometry import invert_transform, rpy_transform
+from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
@@ -79,7 +79,6 @@ class OdometryPipeline:
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
-        self.T_sensor_base = invert_transform(self.T_base_sensor)
         self.status_counts: Counter[str] = Counter()
         self._stamps_ns: list[int] = []
         self._poses: list[np.ndarray] = []
@@ -128,7 +127,7 @@ class OdometryPipeline:
                                              kept.time_offset_s)
         t3 = time.perf_counter()
         # 4. Update: odom -> base_link, trajectory, counters.
-        T_odom_base = self.T_base_sensor @ reg.T_world_sensor @ self.T_sensor_base
+        T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
         if self.record_trajectory:
             self._stamps_ns.append(int(scan.stamp_ns))
@@ -175,4 +174,4 @@ class OdometryPipeline:
     def base_trajectory(self) -> Trajectory:
         """T_odom_base of every registered scan: what the node publishes."""
         traj = self.sensor_trajectory()
-        return Trajectory(traj.stamps_ns, self.T_base_sensor @ traj.poses @ self.T_sensor_base)
+        return Trajectory(traj.stamps_ns, sensor_to_base_poses(traj.poses, self.T_base_sensor))

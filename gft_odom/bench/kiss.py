@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gft_odom.config import PipelineConfig
+from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
 
@@ -111,7 +112,7 @@ class KissIcpOdometry:
         timestamps = np.asarray(times, dtype=np.float64) if use_times else np.zeros(0)
         frame, _ = self.odometry.register_frame(points, timestamps)
         # Deskewed to the latest point of the sweep: that is when this pose holds.
-        end_offset_ns = int(round(float(np.max(times)) * 1e9)) if use_times else 0
+        end_offset_ns = int(round(float(np.max(times)) * NS_PER_S)) if use_times else 0
         return KissFrame(stamp_ns=int(scan.stamp_ns) + end_offset_ns,
                          T_world_sensor=np.array(self.odometry.last_pose, dtype=float),
                          n_points_kept=int(len(frame)))

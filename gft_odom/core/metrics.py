@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, SCAN_PERIOD_S
 from gft_odom.core.geometry import invert_transform
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import ConfigError, GroundTruthError
@@ -28,7 +29,7 @@ ATE_MODES = ('se3', 'sim3', 'position')
 MATCH_METHODS = ('nearest', 'interpolate')
 DEFAULT_LENGTHS_M = (5.0, 10.0, 20.0, 50.0)
 DEFAULT_MODE = 'position'
-DEFAULT_MAX_DIFF_S = 0.05
+DEFAULT_MAX_DIFF_S = SCAN_PERIOD_S / 2
 DEFAULT_MATCH = 'nearest'
 DEFAULT_MAX_GAP_S = 1.0
 
@@ -105,7 +106,7 @@ def associate(est: Trajectory, ref: Trajectory,
     empty = np.zeros(0, dtype=np.int64)
     if len(est) == 0 or len(ref) == 0:
         return empty, empty.copy()
-    max_diff_ns = int(round(max_diff_s * 1e9))
+    max_diff_ns = int(round(max_diff_s * NS_PER_S))
     s_est, s_ref = est.stamps_ns, ref.stamps_ns
     upper = np.searchsorted(s_ref, s_est, side='left')
     right = np.minimum(upper, len(ref) - 1)

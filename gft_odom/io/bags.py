@@ -15,12 +15,13 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
 from gft_odom.core.geometry import xyz_quat_from_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import BagError, GftOdomError
 from gft_odom.io._poses import trajectory_from_columns
-from gft_odom.io.pointcloud2 import NS_PER_S, CloudBlob, decode_scan, stamp_ns_of
+from gft_odom.io.pointcloud2 import CloudBlob, decode_scan, stamp_ns_of
 
 log = logging.getLogger(__name__)
 
@@ -311,7 +312,7 @@ class BagWriter:
         stamp_ns = int(stamp_ns)
         if stamp_ns < 0:
             raise BagError(f'negative stamp {stamp_ns} ns on {topic} (writing {self.path})')
-        sec, nanosec = divmod(stamp_ns, NS_PER_S)
+        sec, nanosec = ns_to_sec_nanosec(stamp_ns)
         stamp = types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
         if self.fmt == 'ros1':
             seq = self._seq.get(topic, 0)

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.geometry import make_transform
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import BagError, ConfigError, GroundTruthError
-from gft_odom.io._poses import NS_PER_S, decimal_of, trajectory_from_columns
+from gft_odom.io._poses import decimal_of, trajectory_from_columns
 from gft_odom.io.tum import read_text_lines, read_tum
 
 log = logging.getLogger(__name__)

@@ -18,6 +18,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, sec_nanosec_to_ns
 from gft_odom.core.types import Scan
 from gft_odom.errors import CodecError
 
@@ -40,7 +41,6 @@ DATATYPE_CODES: dict[int, str] = {
 DATATYPE_SIZES: dict[int, int] = {k: int(v[1]) for k, v in DATATYPE_CODES.items()}
 _DATATYPE_OF_DTYPE: dict[np.dtype, int] = {np.dtype(v): k for k, v in DATATYPE_CODES.items()}
 _UINT32_MAX = 2**32 - 1
-NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -262,7 +262,7 @@ def stamp_ns_of(header: Any) -> int:
     if isinstance(nanosec, bool) or not isinstance(nanosec, (int, np.integer)) or not (
             0 <= int(nanosec) < NS_PER_S):
         raise CodecError(f'header.stamp.nanosec must be an integer in [0, 1e9), got {nanosec!r}')
-    return int(sec) * NS_PER_S + int(nanosec)
+    return sec_nanosec_to_ns(sec, nanosec)
 
 
 def decode_scan(msg: Any) -> Scan:

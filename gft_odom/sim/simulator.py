@@ -18,16 +18,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from gft_odom.config import NodeConfig
+from gft_odom.core.constants import NS_PER_S, SCAN_PERIOD_S
 from gft_odom.core.geometry import make_transform, rpy_transform
-from gft_odom.core.registration import RegistrationConfig
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
 from gft_odom.io.ground_truth import GroundTruthConfig
 from gft_odom.sim.lidar import SURFACE_REFLECTIVITY, Vlp16Model, cast_rays
 from gft_odom.sim.motion import RobotMotion, make_motion, required_row_length_m
 from gft_odom.sim.orchard import Orchard, generate_orchard
-
-NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -44,7 +42,7 @@ class SimConfig:
     yaw_wobble_rad: float = 0.02
     # VLP-16: 0.2 deg at 10 Hz (the real sensor; coarser steps only to make tests cheap).
     azimuth_step_deg: float = 0.2
-    scan_rate_hz: float = 1.0 / RegistrationConfig.scan_period_s
+    scan_rate_hz: float = 1.0 / SCAN_PERIOD_S
     min_range_m: float = 0.4
     max_range_m: float = 100.0
     # Datasheet: typical accuracy +-3 cm; a 1-sigma of 2.5 cm matches what people measure.

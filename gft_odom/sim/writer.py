@@ -21,11 +21,12 @@ from typing import Callable
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import SimulationError
 from gft_odom.sim.motion import SCENARIOS
-from gft_odom.sim.simulator import NS_PER_S, ScanSimulator, SimConfig
+from gft_odom.sim.simulator import ScanSimulator, SimConfig
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +159,7 @@ def _write_gt_csv(path: Path, traj: Trajectory) -> None:
     xyz, quat = xyz_quat_from_poses(traj.poses)
     lines = ['timestamp,x,y,z,qx,qy,qz,qw']
     for stamp, p, q in zip(traj.stamps_ns.tolist(), xyz, quat):
-        sec, nsec = divmod(int(stamp), NS_PER_S)
+        sec, nsec = ns_to_sec_nanosec(stamp)
         lines.append(f'{sec}.{nsec:09d},' + ','.join(f'{v:.6f}' for v in p) + ','
                      + ','.join(f'{v:.9f}' for v in q))
     write_text_atomic(path, '\n'.join(lines) + '\n')
