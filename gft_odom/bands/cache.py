@@ -21,7 +21,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
-from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
+from gft_odom.core.spectral.bands import BandMask
+from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter, keep_mask
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import BagError
@@ -85,14 +86,11 @@ class SequenceCache:
     def per_scan(self, array: np.ndarray) -> list[np.ndarray]:
         return [array[self._span(i)] for i in range(len(self))]
 
-    def base_keep(self, keep_isolated: bool, keep_out_of_range: bool) -> np.ndarray:
-        """(P,) points every mask keeps (band 0 kept by the filter's flags); see `keep_mask`."""
-        keep = np.zeros(self.isolated.shape, dtype=bool)
-        if keep_isolated:
-            keep |= self.isolated
-        if keep_out_of_range:
-            keep |= ~self.in_range
-        return keep & self.finite
+    def keep(self, i: int, mask: BandMask, keep_isolated: bool, keep_out_of_range: bool
+             ) -> np.ndarray:
+        """(n,) points of cropped scan i that `mask` keeps (`keep_mask` on the cached data)."""
+        return keep_mask(self.frequencies(i, mask.n_bands), mask, keep_isolated,
+                         keep_out_of_range)
 
     # -- persistence ---------------------------------------------------------------------------
 

@@ -166,9 +166,6 @@ class BandSearch:
         self.ray_address = ray_address
         self._check_meta()
         self.log = ResultsLog(self.out / 'results.jsonl')
-        self._base = [seq.per_scan(seq.base_keep(config.spectral.keep_isolated,
-                                                 config.spectral.keep_out_of_range))
-                      for seq in self.train]
         self._fingerprints: dict[str, str] = {}
         self._by_fingerprint: dict[str, str] = {
             r['fingerprint']: k for k, r in self.log.rows.items()
@@ -193,9 +190,9 @@ class BandSearch:
     def fingerprint(self, mask: BandMask) -> str:
         key = mask_key(mask)
         if key not in self._fingerprints:
-            bands = [b for seq in self.train for b in seq.per_scan(seq.bands[mask.n_bands])]
-            base = [b for per_seq in self._base for b in per_seq]
-            self._fingerprints[key] = keep_fingerprint(bands, base, mask)
+            flags = (self.config.spectral.keep_isolated, self.config.spectral.keep_out_of_range)
+            self._fingerprints[key] = keep_fingerprint(
+                seq.keep(i, mask, *flags) for seq in self.train for i in range(len(seq)))
         return self._fingerprints[key]
 
     def evaluate(self, masks: Sequence[BandMask | None],
