@@ -22,7 +22,8 @@ def frequency_colormap():
     return LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS)
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot with the Agg backend (no display needed), imported on first use."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -36,7 +37,7 @@ def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
         write_atomic(path, lambda f: fig.savefig(f, dpi=dpi, format=path.suffix.lstrip('.')
                                                  or 'png', bbox_inches='tight'))
     finally:
-        _pyplot().close(fig)
+        pyplot().close(fig)
     return path
 
 
@@ -51,7 +52,7 @@ def aligned_positions(estimate: Trajectory, reference: Trajectory) -> np.ndarray
 def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajectory | None,
                     metrics: dict | None = None, label: str = 'gft_odom') -> Path:
     """Top-down estimated path (aligned to the reference when there is one)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 6))
     if reference is not None and len(reference):
         ax.plot(*reference.positions_xyz[:, :2].T, color='0.3', lw=2.0, label='ground truth')
@@ -77,7 +78,7 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajector
 def plot_map(path: str | Path, points_world: np.ndarray, nu: np.ndarray | None,
              trajectory: Trajectory | None = None, max_points: int = 300_000) -> Path:
     """Merged map, top view, coloured by normalised graph frequency (grey when unfiltered)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 7))
     if len(points_world) > max_points:
         pick = np.random.default_rng(0).choice(len(points_world), max_points, replace=False)

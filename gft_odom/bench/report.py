@@ -254,11 +254,9 @@ def markdown_page(document: dict, figures: dict[str, str], notes: str = '') -> s
 def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
                  prefix: str = 'bench_') -> dict[str, Path]:
     """ATE per scenario, latency distribution, trajectories of one sequence."""
-    import matplotlib
+    from gft_odom.figures import pyplot
 
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

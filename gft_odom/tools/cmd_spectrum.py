@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gft_odom.errors import GroundTruthError
+from gft_odom.core.trajectory import Trajectory
+from gft_odom.figures import pyplot
 
 log = logging.getLogger(__name__)
 
@@ -54,40 +55,19 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def pose_at(stamps_ns: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray:
-    """T_world_sensor at `stamp_ns`: linear in position, slerp in rotation."""
-    from scipy.spatial.transform import Rotation, Slerp
-
-    span = (stamps_ns[0] - MAX_EXTRAPOLATION_S * 1e9, stamps_ns[-1] + MAX_EXTRAPOLATION_S * 1e9)
-    if not span[0] <= stamp_ns <= span[1]:
-        raise GroundTruthError(
-            f'scan stamp {stamp_ns * 1e-9:.3f} s is outside the ground truth '
-            f'({stamps_ns[0] * 1e-9:.3f} .. {stamps_ns[-1] * 1e-9:.3f} s)')
-    if len(stamps_ns) == 1:
-        return poses[0]
-    k = int(np.clip(np.searchsorted(stamps_ns, stamp_ns) - 1, 0, len(stamps_ns) - 2))
-    t0, t1 = int(stamps_ns[k]), int(stamps_ns[k + 1])
-    a = float(np.clip((stamp_ns - t0) / max(t1 - t0, 1), 0.0, 1.0))
-    T = np.eye(4)
-    T[:3, 3] = (1.0 - a) * poses[k, :3, 3] + a * poses[k + 1, :3, 3]
-    slerp = Slerp([0.0, 1.0], Rotation.from_matrix(poses[k:k + 2, :3, :3]))
-    T[:3, :3] = slerp([a]).as_matrix()[0]
-    return T
-
-
 def merge_frequencies(scans, traj, spectral_filter, max_scans: int, every: int = 1):
     """World points (M, 3), their nu (M,) (NaN: no spectrum), and the sensor positions."""
     from gft_odom.core.geometry import transform_points
 
     order = np.argsort(traj.stamps_ns, kind='stable')
-    stamps, poses = traj.stamps_ns[order], traj.poses[order]
+    traj = Trajectory(traj.stamps_ns[order], traj.poses[order])
     points, nus, positions = [], [], []
     for index, scan in enumerate(scans):
         if len(positions) >= max_scans:
             break
         if index % every:
             continue
-        T = pose_at(stamps, poses, scan.stamp_ns)
+        T = traj.pose_at(scan.stamp_ns, MAX_EXTRAPOLATION_S)
         freqs = spectral_filter.frequencies(scan.points_xyz)
         ok = freqs.finite
         points.append(transform_points(T, scan.points_xyz[ok]))
@@ -111,12 +91,9 @@ def near_path(points: np.ndarray, positions: np.ndarray, radius_m: float) -> np.
 def draw(points: np.ndarray, nu: np.ndarray, positions: np.ndarray, out: Path,
          title: str, colour_scale: str = 'quantile') -> None:
     """Top-down and side view, coloured by nu, written to `out` as PNG."""
-    import matplotlib
-
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
     from matplotlib.colors import BoundaryNorm, LinearSegmentedColormap, Normalize
 
+    plt = pyplot()
     if points.shape[0] > MAX_PLOT_POINTS:
         keep = np.random.default_rng(0).choice(points.shape[0], MAX_PLOT_POINTS, replace=False)
         points, nu = points[keep], nu[keep]
