@@ -8,7 +8,6 @@ of another configuration are never mixed in.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import logging
@@ -377,7 +376,3 @@ def _brief(row: dict) -> dict:
 
 def band_counts_for(cfg: BandSearchConfig) -> list[int]:
     return list(range(cfg.min_bands, cfg.max_bands + 1))
-
-
-def asdict(cfg: BandSearchConfig) -> dict:
-    return dataclasses.asdict(cfg)

@@ -48,11 +48,6 @@ class Vlp16Model:
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
 
-    @staticmethod
-    def ring_elevations_rad() -> np.ndarray:
-        """Elevation of ring 0..15 (-15..+15 deg in 2 deg steps)."""
-        return np.deg2rad(np.arange(-15.0, 16.0, 2.0))
-
     def ray_table(self) -> dict[str, np.ndarray]:
         """All rays of one sweep in firing order (column by column, lasers in firing order).
 
