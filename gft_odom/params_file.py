@@ -33,9 +33,9 @@ def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
     try:
         document = yaml.safe_load(path.read_text())
     except OSError as exc:
-        raise ConfigError(f'cannot read params file {path}: {exc.strerror or exc}') from None
+        raise ConfigError(f'cannot read params file {path}: {exc.strerror or exc}') from exc
     except yaml.YAMLError as exc:
-        raise ConfigError(f'params file {path} is not valid YAML: {exc}') from None
+        raise ConfigError(f'params file {path} is not valid YAML: {exc}') from exc
     if not isinstance(document, dict):
         raise ConfigError(f'params file {path}: expected a mapping of node names, '
                           f'got {type(document).__name__}')
@@ -70,7 +70,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     try:
         value = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
-        raise ConfigError(f'override {text!r}: value is not valid YAML: {exc}') from None
+        raise ConfigError(f'override {text!r}: value is not valid YAML: {exc}') from exc
     return key.strip(), value
 
 

@@ -97,8 +97,8 @@ class RayMaskExecutor:
                  address: str, max_in_flight: int | None = None) -> None:
         try:
             import ray
-        except ImportError:
-            raise ConfigError('--ray-address needs the `ray` package (pip install ray)') from None
+        except ImportError as exc:
+            raise ConfigError('--ray-address needs the `ray` package (pip install ray)') from exc
         self.ray = ray
         self._owns = not ray.is_initialized()
         if self._owns:
@@ -107,7 +107,7 @@ class RayMaskExecutor:
                          logging_level=logging.WARNING)
             except (ConnectionError, ValueError, RuntimeError) as exc:
                 raise GftOdomError(f'cannot connect to the Ray cluster at {address}: {exc}'
-                                   ) from None
+                                   ) from exc
         cpus = int(ray.cluster_resources().get('CPU', 1))
         self.max_in_flight = max_in_flight or max(2, 2 * cpus)
         self.refs = [ray.put(seq) for seq in sequences]

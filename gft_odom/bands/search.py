@@ -106,12 +106,12 @@ class ResultsLog:
         for n, line in enumerate(lines):
             try:
                 row = json.loads(line)
-            except json.JSONDecodeError:
+            except json.JSONDecodeError as exc:
                 if n == len(lines) - 1:
                     log.warning('%s: last line is incomplete (search killed mid-write); '
                                 'that mask will be evaluated again', self.path)
                     break
-                raise ConfigError(f'{self.path}: line {n + 1} is not JSON') from None
+                raise ConfigError(f'{self.path}: line {n + 1} is not JSON') from exc
             self.rows[row['key']] = row
             good += 1
         # Drop a torn tail so the next append starts on a fresh line.

@@ -74,7 +74,7 @@ def read_ground_truth(path: str | Path, topic: str = '/gps/fix/odometry') -> Tra
         try:
             traj = read_odometry([path], topic=topic)
         except BagError as exc:
-            raise GroundTruthError(f'ground truth bag {path}: {exc}') from None
+            raise GroundTruthError(f'ground truth bag {path}: {exc}') from exc
     elif suffix == '.csv':
         traj = read_ground_truth_csv(path)
     elif suffix in ('.txt', '.tum'):
@@ -162,7 +162,7 @@ def read_ground_truth_csv(path: str | Path) -> Trajectory:
             times.append(decimal_of(tokens[columns['t']]))
             values[i] = [float(tokens[columns[k]]) for k in value_keys]
         except ValueError as exc:
-            raise GroundTruthError(f'{path} line {number}: {exc}') from None
+            raise GroundTruthError(f'{path} line {number}: {exc}') from exc
     if not np.isfinite(values).all():
         bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
         raise GroundTruthError(f'{path} line {lines[bad]}: non-finite value')

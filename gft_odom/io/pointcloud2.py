@@ -127,13 +127,13 @@ def _field_specs(msg: Any) -> tuple[FieldSpec, ...]:
     try:
         raw_fields = list(msg.fields)
     except (AttributeError, TypeError) as exc:
-        raise CodecError(f'PointCloud2 has no readable field table: {exc}') from None
+        raise CodecError(f'PointCloud2 has no readable field table: {exc}') from exc
     specs = []
     for i, f in enumerate(raw_fields):
         try:
             name, offset, datatype, count = f.name, f.offset, f.datatype, f.count
         except AttributeError as exc:
-            raise CodecError(f'PointCloud2 field #{i} is not a PointField: {exc}') from None
+            raise CodecError(f'PointCloud2 field #{i} is not a PointField: {exc}') from exc
         if not isinstance(name, str):
             raise CodecError(f'PointCloud2 field #{i} name is not a string: {name!r}')
         specs.append(FieldSpec(name, _as_dim(offset, f'field {name!r} offset'),
@@ -152,7 +152,7 @@ def _byte_buffer(data: Any) -> np.ndarray:
         try:
             return np.frombuffer(memoryview(data).cast('B'), dtype=np.uint8)
         except (TypeError, ValueError) as exc:
-            raise CodecError(f'PointCloud2 data is not a byte buffer: {exc}') from None
+            raise CodecError(f'PointCloud2 data is not a byte buffer: {exc}') from exc
     if isinstance(data, (list, tuple)):
         arr = np.asarray(data)
         if arr.ndim != 1 or (arr.size and (arr.dtype.kind not in 'iu' or arr.min() < 0
@@ -221,7 +221,7 @@ def _decode_fields(msg: Any, fields: tuple[FieldSpec, ...]) -> dict[str, np.ndar
         big_endian = msg.is_bigendian
         data = msg.data
     except AttributeError as exc:
-        raise CodecError(f'not a PointCloud2: {exc}') from None
+        raise CodecError(f'not a PointCloud2: {exc}') from exc
     if not isinstance(big_endian, (bool, np.bool_, int, np.integer)) or int(big_endian) not in (
             0, 1):
         raise CodecError(f'PointCloud2 is_bigendian must be a bool, got {big_endian!r}')
@@ -256,7 +256,7 @@ def stamp_ns_of(header: Any) -> int:
     try:
         sec, nanosec = header.stamp.sec, header.stamp.nanosec
     except AttributeError as exc:
-        raise CodecError(f'message header has no stamp: {exc}') from None
+        raise CodecError(f'message header has no stamp: {exc}') from exc
     if isinstance(sec, bool) or not isinstance(sec, (int, np.integer)):
         raise CodecError(f'header.stamp.sec must be an integer, got {sec!r}')
     if isinstance(nanosec, bool) or not isinstance(nanosec, (int, np.integer)) or not (

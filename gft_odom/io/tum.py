@@ -28,10 +28,10 @@ def read_text_lines(path: str | Path) -> list[tuple[int, str]]:
     path = Path(path)
     try:
         text = path.read_text(encoding='utf-8')
-    except FileNotFoundError:
-        raise GroundTruthError(f'trajectory file {path} does not exist') from None
+    except FileNotFoundError as exc:
+        raise GroundTruthError(f'trajectory file {path} does not exist') from exc
     except (OSError, UnicodeDecodeError) as exc:
-        raise GroundTruthError(f'cannot read trajectory file {path}: {exc}') from None
+        raise GroundTruthError(f'cannot read trajectory file {path}: {exc}') from exc
     rows = []
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
@@ -58,7 +58,7 @@ def read_tum(path: str | Path) -> Trajectory:
             stamps_ns[i] = seconds_text_to_ns(tokens[0])
             values[i] = [float(t) for t in tokens[1:]]
         except (ValueError, OverflowError) as exc:
-            raise GroundTruthError(f'{path} line {number}: {exc}') from None
+            raise GroundTruthError(f'{path} line {number}: {exc}') from exc
     if not np.isfinite(values).all():
         bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
         raise GroundTruthError(f'{path} line {lines[bad]}: non-finite value')
