@@ -1,4 +1,5 @@
-"""Shared fixtures: DDS isolation for tests that talk ROS between processes."""
+"""Shared fixtures: DDS isolation for tests that talk ROS between processes, a service caller,
+the colcon-built node and a small simulated drive."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import os
 import random
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -58,3 +60,34 @@ def installed_node(tmp_path_factory):
     env['PYTHONPATH'] = os.pathsep.join([str(site), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
     env['AMENT_PREFIX_PATH'] = str(prefix)
     return exe, env
+
+
+@pytest.fixture
+def ros_service_caller(ros_env):
+    """`call(srv_type, service_name, request)`: a ROS service of another process, from here."""
+    import rclpy
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    node = rclpy.create_node('test_service_caller', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    clients = {}
+
+    def call(srv_type, name: str, request, timeout_s: float = 30.0):
+        if name not in clients:
+            clients[name] = node.create_client(srv_type, name)
+        assert clients[name].wait_for_service(timeout_sec=timeout_s), f'no service {name}'
+        future = clients[name].call_async(request)
+        deadline = time.monotonic() + 10.0
+        while not future.done() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert future.done(), f'{name} did not answer'
+        return future.result()
+
+    try:
+        yield call
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
