@@ -29,6 +29,7 @@ from gft_odom.io.atomic import write_text_atomic
 from gft_odom.params_file import load_config
 from gft_odom.sim.motion import SCENARIOS
 from gft_odom.sim.simulator import SimConfig
+from gft_odom.tools.args import add_command, add_config_arguments, add_output_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -52,11 +53,12 @@ def _ament_prefixes() -> list[str]:
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'bench', help='benchmark paper ICP, our registration (each +/- filter) and kiss-icp',
-        description='Simulate orchard drives (every scenario x seed), replay each through the '
-                    'five methods with the same clock and metrics; write JSON, a Markdown page '
-                    'and plots. The band mask comes from --config (chosen on other seeds).')
+    p = add_command(
+        subparsers, 'bench',
+        'benchmark paper ICP, our registration (each +/- filter) and kiss-icp',
+        'Simulate orchard drives (every scenario x seed), replay each through the '
+        'five methods with the same clock and metrics; write JSON, a Markdown page '
+        'and plots. The band mask comes from --config (chosen on other seeds).')
     p.add_argument('--seeds', type=int, nargs='+', default=list(DEFAULT_SEEDS),
                    help=f'simulator seeds (default {" ".join(map(str, DEFAULT_SEEDS))}); keep '
                         'them disjoint from those the band mask was chosen on')
@@ -66,17 +68,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='simulated VLP-16 azimuth step (0.2 = the real sensor; coarser only to '
                         'make tests cheap)')
     p.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
-    p.add_argument('--config', metavar='YAML',
-                   help="params file with the band mask (default: the package's "
-                        'config/filter_odom.yaml)')
-    p.add_argument('--set', dest='overrides', action='append', default=[],
-                   metavar='SECTION.KEY=VALUE', help='override one parameter')
+    add_config_arguments(p, help="params file with the band mask (default: the package's "
+                                 'config/filter_odom.yaml)')
     p.add_argument('--mask-provenance', default='',
                    help='one sentence for the page: how and on which seeds the mask was chosen')
     p.add_argument('--json', default='benchmarks/results/bench.json', help='JSON output')
     p.add_argument('--markdown', default='docs/benchmarks.md', help='Markdown page output')
     p.add_argument('--figures-dir', help="PNG folder (default: the Markdown page's folder)")
-    p.add_argument('--no-figures', action='store_true')
     p.add_argument('--work-dir', help='keep the simulated bags here (default: a temporary '
                                       'folder, deleted at the end)')
     p.add_argument('--profile-scans', type=int, default=0,
@@ -92,7 +90,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--kiss-no-deskew', action='store_true')
     g.add_argument('--kiss-threads', type=int, default=d.max_num_threads,
                    help='0 = all cores (kiss-icp default)')
-    p.add_argument('--quiet', action='store_true', help='no progress bars')
+    add_output_switches(p)
     return p
 
 

@@ -15,6 +15,7 @@ from gft_odom.core.spectral.bands import BandMask
 from gft_odom.params_file import load_config, packaged_params_file
 from gft_odom.replay import run_replay, write_json, write_results
 from gft_odom.sim.writer import simulate_to_bag
+from gft_odom.tools.args import add_command, add_output_switches
 from gft_odom.tools.progress import progress_bar
 
 # (run name, packaged params file, filter on): each registration mode with the mask chosen
@@ -39,10 +40,10 @@ COLUMNS = (
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'demo', help='simulate an orchard bag and replay it with and without the filter',
-        description='The embedded default: a SYNTHETIC orchard (not real data) replayed in '
-                    'paper and default registration modes, each with and without the filter.')
+    p = add_command(
+        subparsers, 'demo', 'simulate an orchard bag and replay it with and without the filter',
+        'The embedded default: a SYNTHETIC orchard (not real data) replayed in '
+        'paper and default registration modes, each with and without the filter.')
     p.add_argument('--out', default='demo_out', help='results folder (default: demo_out)')
     p.add_argument('--scenario', default='uturn', choices=('row', 'uturn', 'loop'))
     p.add_argument('--scans', type=int, default=150, help='number of scans to simulate')
@@ -50,7 +51,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='orchard seed (the band mask was not chosen on it)')
     p.add_argument('--set', dest='overrides', action='append', default=[],
                    metavar='SECTION.KEY=VALUE', help='override one parameter in every run')
-    p.add_argument('--quiet', action='store_true', help='no progress bars')
+    add_output_switches(p, figures=False)
     return p
 
 

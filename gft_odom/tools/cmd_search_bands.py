@@ -7,22 +7,28 @@ import logging
 
 from gft_odom.errors import ConfigError
 from gft_odom.params_file import load_config
-from gft_odom.tools.cmd_replay import add_config_arguments
+from gft_odom.tools.args import (
+    add_bag_arguments,
+    add_command,
+    add_config_arguments,
+    add_output_switches,
+)
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'search-bands', help='search band masks on training bags, score the best held-out',
-        description='Rank band masks by trajectory error on the training bags (in-sample), '
-                    'report the chosen mask on --test bags (held-out) beside the unfiltered '
-                    'baseline, and write best_mask.yaml for filter_odom_node --params-file. '
-                    'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
-                    'one sequence. Results are appended as they finish: rerun the same command '
-                    'to resume.')
-    p.add_argument('bags', nargs='+', metavar='BAG', help='training bag(s)')
+    p = add_command(
+        subparsers, 'search-bands',
+        'search band masks on training bags, score the best held-out',
+        'Rank band masks by trajectory error on the training bags (in-sample), '
+        'report the chosen mask on --test bags (held-out) beside the unfiltered '
+        'baseline, and write best_mask.yaml for filter_odom_node --params-file. '
+        'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
+        'one sequence. Results are appended as they finish: rerun the same command '
+        'to resume.')
+    add_bag_arguments(p, help='training bag(s)')
     p.add_argument('--gt', nargs='+', required=True, metavar='GT',
                    help='ground truth per training bag (gt.csv, gt.bag or TUM)')
     p.add_argument('--out', required=True, help='output folder (also the resume state)')
@@ -39,10 +45,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument('--ray-address', metavar='ADDR',
                    help='run on an existing Ray cluster (e.g. 127.0.0.1:6379)')
     add_config_arguments(p)
-    p.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
     p.add_argument('--max-scans', type=int, help='use the first N scans of each sequence')
-    p.add_argument('--no-figures', action='store_true', help='skip the PNG figures')
-    p.add_argument('--quiet', action='store_true', help='no progress bar')
+    add_output_switches(p)
     return p
 
 

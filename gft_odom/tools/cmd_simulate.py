@@ -9,16 +9,17 @@ import logging
 from gft_odom.sim.motion import SCENARIOS
 from gft_odom.sim.simulator import SimConfig
 from gft_odom.sim.writer import simulate_to_bag
+from gft_odom.tools.args import add_command
 
 log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'simulate', help='simulate a VLP-16 on a Jackal driving through a citrus orchard',
-        description='Simulate a VLP-16 on a Jackal in a synthetic citrus orchard and write a '
-                    'bag (/velodyne_points, /gps/fix/odometry), ground_truth/gt.csv, '
-                    'ground_truth/gt_sensor_tum.txt and topdown.png under --out.')
+    p = add_command(
+        subparsers, 'simulate', 'simulate a VLP-16 on a Jackal driving through a citrus orchard',
+        'Simulate a VLP-16 on a Jackal in a synthetic citrus orchard and write a '
+        'bag (/velodyne_points, /gps/fix/odometry), ground_truth/gt.csv, '
+        'ground_truth/gt_sensor_tum.txt and topdown.png under --out.')
     p.add_argument('--scenario', choices=SCENARIOS, default='row',
                    help='row: straight between two rows; uturn: down one row and back along '
                         'the next; loop: around a block of rows (default: row)')
