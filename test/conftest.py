@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# Plain helper modules beside this file (synthetic_clouds) are importable from every test.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 @pytest.fixture(scope='session')
@@ -63,15 +65,47 @@ def installed_node(tmp_path_factory):
 
 
 @pytest.fixture
-def ros_service_caller(ros_env):
-    """`call(srv_type, service_name, request)`: a ROS service of another process, from here."""
+def refuses_file(tmp_path):
+    """`refuses_file(read, text, error, match, name)`: `read` of a file holding `text` raises
+    `error` with a message matching `match`."""
+    def check(read, text: str, error: type[Exception], match: str, name: str = 'input.txt'):
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(error, match=match):
+            read(path)
+
+    return check
+
+
+@pytest.fixture
+def ros_node(ros_env):
+    """An rclpy node of this test process in its own context: (node, spin_until)."""
     import rclpy
 
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
-    node = rclpy.create_node('test_service_caller', context=context)
+    node = rclpy.create_node('test_client', context=context)
     executor = rclpy.executors.SingleThreadedExecutor(context=context)
     executor.add_node(node)
+
+    def spin_until(done, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        return bool(done())
+
+    try:
+        yield node, spin_until
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def ros_service_caller(ros_node):
+    """`call(srv_type, service_name, request)`: a ROS service of another process, from here."""
+    node, spin_until = ros_node
     clients = {}
 
     def call(srv_type, name: str, request, timeout_s: float = 30.0):
@@ -79,15 +113,7 @@ def ros_service_caller(ros_env):
             clients[name] = node.create_client(srv_type, name)
         assert clients[name].wait_for_service(timeout_sec=timeout_s), f'no service {name}'
         future = clients[name].call_async(request)
-        deadline = time.monotonic() + 10.0
-        while not future.done() and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        assert future.done(), f'{name} did not answer'
+        assert spin_until(future.done, 10.0), f'{name} did not answer'
         return future.result()
 
-    try:
-        yield call
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+    return call

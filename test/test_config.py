@@ -86,14 +86,9 @@ def test_invalid_values_are_refused_with_the_reason(flat, message):
         with_values(GftOdomConfig(), flat)
 
 
-def test_broken_params_files_give_clear_errors(tmp_path):
-    bad_yaml = tmp_path / 'bad.yaml'
-    bad_yaml.write_text('/**: {ros__parameters: [unclosed')
-    with pytest.raises(ConfigError, match='not valid YAML'):
-        load_config(bad_yaml)
-    other_node = tmp_path / 'other.yaml'
-    other_node.write_text('some_node:\n  ros__parameters:\n    a: 1\n')
-    with pytest.raises(ConfigError, match='no "/\\*\\*" or "filter_odom_node" entry'):
-        load_config(other_node)
+def test_broken_params_files_give_clear_errors(tmp_path, refuses_file):
+    refuses_file(load_config, '/**: {ros__parameters: [unclosed', ConfigError, 'not valid YAML')
+    refuses_file(load_config, 'some_node:\n  ros__parameters:\n    a: 1\n', ConfigError,
+                 'no "/\\*\\*" or "filter_odom_node" entry')
     with pytest.raises(ConfigError, match='cannot read'):
         load_config(tmp_path / 'missing.yaml')

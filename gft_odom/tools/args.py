@@ -10,14 +10,14 @@ def add_command(subparsers, name: str, help: str, description: str) -> argparse.
     return subparsers.add_parser(name, help=help, description=description)
 
 
-def add_bag_arguments(parser: argparse.ArgumentParser,
+def add_bags(parser: argparse.ArgumentParser,
                       help: str = 'bag file(s) or rosbag2 folder') -> None:
     """The input bags (positional) and --topic."""
     parser.add_argument('bags', nargs='+', metavar='BAG', help=help)
     parser.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
 
 
-def add_config_arguments(parser: argparse.ArgumentParser,
+def add_config(parser: argparse.ArgumentParser,
                          help: str = 'ROS params file (as for filter_odom_node --params-file)'
                          ) -> None:
     """--config / --set, shared by every sub-command that runs the pipeline."""
@@ -27,7 +27,7 @@ def add_config_arguments(parser: argparse.ArgumentParser,
                         help='override one parameter, e.g. --set spectral.band_mask=[1,9,10]')
 
 
-def add_output_switches(parser: argparse.ArgumentParser, figures: bool = True) -> None:
+def add_switches(parser: argparse.ArgumentParser, figures: bool = True) -> None:
     """--no-figures (when the command draws any) and --quiet."""
     if figures:
         parser.add_argument('--no-figures', action='store_true', help='skip the PNG figures')

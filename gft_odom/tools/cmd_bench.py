@@ -29,7 +29,7 @@ from gft_odom.io.atomic import write_text_atomic
 from gft_odom.params_file import load_config
 from gft_odom.sim.motion import SCENARIOS
 from gft_odom.sim.simulator import SimConfig
-from gft_odom.tools.args import add_command, add_config_arguments, add_output_switches
+from gft_odom.tools.args import add_command, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -68,7 +68,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='simulated VLP-16 azimuth step (0.2 = the real sensor; coarser only to '
                         'make tests cheap)')
     p.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
-    add_config_arguments(p, help="params file with the band mask (default: the package's "
+    add_config(p, help="params file with the band mask (default: the package's "
                                  'config/filter_odom.yaml)')
     p.add_argument('--mask-provenance', default='',
                    help='one sentence for the page: how and on which seeds the mask was chosen')
@@ -90,7 +90,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--kiss-no-deskew', action='store_true')
     g.add_argument('--kiss-threads', type=int, default=d.max_num_threads,
                    help='0 = all cores (kiss-icp default)')
-    add_output_switches(p)
+    add_switches(p)
     return p
 
 

@@ -15,7 +15,7 @@ from gft_odom.core.spectral.bands import BandMask
 from gft_odom.params_file import load_config, packaged_params_file
 from gft_odom.replay import run_replay, write_json, write_results
 from gft_odom.sim.writer import simulate_to_bag
-from gft_odom.tools.args import add_command, add_output_switches
+from gft_odom.tools.args import add_command, add_switches
 from gft_odom.tools.progress import progress_bar
 
 # (run name, packaged params file, filter on): each registration mode with the mask chosen
@@ -51,7 +51,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='orchard seed (the band mask was not chosen on it)')
     p.add_argument('--set', dest='overrides', action='append', default=[],
                    metavar='SECTION.KEY=VALUE', help='override one parameter in every run')
-    add_output_switches(p, figures=False)
+    add_switches(p, figures=False)
     return p
 
 

@@ -8,12 +8,7 @@ import logging
 
 from gft_odom.params_file import load_config
 from gft_odom.replay import run_replay, write_results
-from gft_odom.tools.args import (
-    add_bag_arguments,
-    add_command,
-    add_config_arguments,
-    add_output_switches,
-)
+from gft_odom.tools.args import add_bags, add_command, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -25,10 +20,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         'Replay LiDAR scans from ROS 1 .bag files (split parts in time order) or '
         'rosbag2 folders through the pipeline; write TUM poses, metrics.json, the '
         'effective config and figures to --out.')
-    add_bag_arguments(p)
+    add_bags(p)
     p.add_argument('--out', required=True, help='results folder')
     p.add_argument('--gt', help='ground truth: gt.csv, gt.bag (/gps/fix/odometry) or TUM file')
-    add_config_arguments(p)
+    add_config(p)
     p.add_argument('--no-filter', action='store_true',
                    help='bypass the spectral filter (same registration): the baseline')
     p.add_argument('--max-scans', type=int, help='stop after this many scans')
@@ -37,7 +32,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         'it over DDS (with /clock) instead of in-process')
     p.add_argument('--node-exe', help='path of filter_odom_node for --through-node '
                    '(default: <prefix>/lib/gft_odom/filter_odom_node from AMENT_PREFIX_PATH)')
-    add_output_switches(p)
+    add_switches(p)
     return p
 
 

@@ -7,12 +7,7 @@ import logging
 
 from gft_odom.errors import ConfigError
 from gft_odom.params_file import load_config
-from gft_odom.tools.args import (
-    add_bag_arguments,
-    add_command,
-    add_config_arguments,
-    add_output_switches,
-)
+from gft_odom.tools.args import add_bags, add_command, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -28,7 +23,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
         'one sequence. Results are appended as they finish: rerun the same command '
         'to resume.')
-    add_bag_arguments(p, help='training bag(s)')
+    add_bags(p, help='training bag(s)')
     p.add_argument('--gt', nargs='+', required=True, metavar='GT',
                    help='ground truth per training bag (gt.csv, gt.bag or TUM)')
     p.add_argument('--out', required=True, help='output folder (also the resume state)')
@@ -44,9 +39,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument('--workers', type=int, default=1, help='local worker processes')
     p.add_argument('--ray-address', metavar='ADDR',
                    help='run on an existing Ray cluster (e.g. 127.0.0.1:6379)')
-    add_config_arguments(p)
+    add_config(p)
     p.add_argument('--max-scans', type=int, help='use the first N scans of each sequence')
-    add_output_switches(p)
+    add_switches(p)
     return p
 
 

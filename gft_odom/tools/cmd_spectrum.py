@@ -16,7 +16,7 @@ import numpy as np
 
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.figures import pyplot
-from gft_odom.tools.args import add_bag_arguments, add_command, add_config_arguments
+from gft_odom.tools.args import add_bags, add_command, add_config
 
 log = logging.getLogger(__name__)
 
@@ -35,14 +35,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         'Merge the first N scans of a bag into the world frame with ground-truth '
         "sensor poses and write a PNG coloured by each point's graph frequency "
         'nu (top-down and side view).')
-    add_bag_arguments(p)
+    add_bags(p)
     p.add_argument('--gt', required=True,
                    help='ground-truth SENSOR poses: TUM file (e.g. ground_truth/'
                         'gt_sensor_tum.txt from `gft-odom simulate`), gt.csv or gt.bag')
     p.add_argument('--out', required=True, help='output PNG path')
     p.add_argument('--scans', type=int, default=50, help='number of scans to merge (50)')
     p.add_argument('--every', type=int, default=1, help='use every k-th scan (1)')
-    add_config_arguments(p, help='ROS params file (spectral section used)')
+    add_config(p, help='ROS params file (spectral section used)')
     p.add_argument('--radius-m', type=float, default=30.0,
                    help='draw points within this distance (x, y) of the sensor path (30)')
     p.add_argument('--colour-scale', choices=('quantile', 'linear'), default='quantile',
