@@ -20,6 +20,7 @@ from gft_odom.bench.report import (
     bench_to_dict,
     markdown_page,
     plot_figures,
+    summary_table,
     write_json,
 )
 from gft_odom.bench.runner import METHODS, profile_method, run_bench, simulate_sequences
@@ -95,6 +96,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Configure, measure every method on the simulated sequences, write and print results."""
+    config_path, base_config, kiss_config, sim_config = _configs(args)
+    version = kiss_icp_version() if 'kiss-icp' in args.methods else 'not run'
+    bench = _measure(args, base_config, kiss_config, sim_config)
+    document = bench_to_dict(bench, _settings(args, config_path, base_config, kiss_config,
+                                              version))
+    _write_and_print(args, bench, document)
+    return 0
+
+
+def _configs(args: argparse.Namespace):
+    """(config path, pipeline config, kiss-icp config, simulator config), all validated."""
     if args.scans < 2:
         raise ConfigError(f'--scans must be >= 2, got {args.scans}')
     config_path = Path(args.config) if args.config else default_config_path()
@@ -104,10 +117,14 @@ def run(args: argparse.Namespace) -> int:
         voxel_size_m=args.kiss_voxel_size_m, deskew=not args.kiss_no_deskew,
         max_num_threads=args.kiss_threads)
     kiss_config.validate()
-    version = kiss_icp_version() if 'kiss-icp' in args.methods else 'not run'
     sim_config = SimConfig(azimuth_step_deg=args.azimuth_step_deg)
     sim_config.validate()
+    return config_path, base_config, kiss_config, sim_config
 
+
+def _measure(args: argparse.Namespace, base_config, kiss_config: KissIcpConfig,
+             sim_config: SimConfig):
+    """Simulate the sequences, run every method on them, profile if asked; the bench run."""
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix='gft_bench_'))
     try:
         n_seq = len(args.seeds) * len(args.scenarios)
@@ -129,10 +146,15 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if not args.work_dir:
             shutil.rmtree(work, ignore_errors=True)
+    return bench
 
+
+def _settings(args: argparse.Namespace, config_path, base_config, kiss_config: KissIcpConfig,
+              version: str) -> dict:
+    """What the run was asked to do, for the JSON and the page."""
     spectral = base_config.spectral
     mask = BandMask.parse(spectral.band_mask, spectral.n_bands)
-    settings = {
+    return {
         'command': 'gft-odom bench ' + ' '.join(shlex.quote(a) for a in sys.argv[2:])
         if len(sys.argv) > 1 and sys.argv[1] == 'bench' else 'gft-odom bench (API)',
         'seeds': list(args.seeds), 'scenarios': list(args.scenarios), 'n_scans': args.scans,
@@ -154,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
         'registration_config': _as_dict(base_config.registration),
         'spectral_config': _as_dict(spectral),
     }
-    document = bench_to_dict(bench, settings)
+
+
+def _write_and_print(args: argparse.Namespace, bench, document: dict) -> None:
+    """JSON, figures and the Markdown page; the summary table and targets on stdout."""
     json_path = write_json(Path(args.json), document)
     md_path = Path(args.markdown)
     figures = {}
@@ -166,12 +191,10 @@ def run(args: argparse.Namespace) -> int:
     if args.notes_file:
         notes = Path(args.notes_file).read_text() + ('\n' + notes if notes else '')
     write_text_atomic(md_path, markdown_page(document, figures, notes))
-    from gft_odom.bench.report import summary_table
     print(summary_table(document['summary']))
     for t in document['targets']:
         print(f'[{"met" if t["met"] else "MISSED"}] {t["target"]}: {t["measured"]}')
     print(f'wrote {json_path}, {md_path}' + ''.join(f', {p}' for p in figures.values()))
-    return 0
 
 
 def _as_dict(cfg) -> dict:
