@@ -18,6 +18,7 @@ FREQUENCY_COLOURS = ('#08215e', '#1b4f9c', '#2a8fa8', '#55c49a', '#b6f08c')
 
 
 def frequency_colormap():
+    """The colour map of graph frequency nu: dark blue (low) to light green (high)."""
     from matplotlib.colors import LinearSegmentedColormap
     return LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS)
 

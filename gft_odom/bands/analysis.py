@@ -108,6 +108,7 @@ def _fmt(value) -> str:
 
 
 def best_mask(rows: Sequence[dict]) -> BandMask:
+    """The best-ranked mask of `rows` (ValueError when there is none)."""
     best = ranked(rows)
     if not best:
         raise ValueError('no mask result to choose from')

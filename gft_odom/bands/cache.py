@@ -62,12 +62,14 @@ class SequenceCache:
 
     @property
     def band_counts(self) -> tuple[int, ...]:
+        """The band counts B with cached frequencies, ascending."""
         return tuple(sorted(self.bands))
 
     def _span(self, i: int) -> slice:
         return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
 
     def scan(self, i: int) -> Scan:
+        """Cropped scan i as the pipeline saw it (stamp, points, per-point times)."""
         s = self._span(i)
         offsets = None if self.time_offset_s is None else self.time_offset_s[s]
         return Scan(int(self.stamps_ns[i]), self.points_xyz[s], time_offset_s=offsets)
@@ -84,6 +86,7 @@ class SequenceCache:
                                 n_slices=int(self.n_slices[i]))
 
     def per_scan(self, array: np.ndarray) -> list[np.ndarray]:
+        """Split a (P,) array over all cached points into one array per scan."""
         return [array[self._span(i)] for i in range(len(self))]
 
     def keep(self, i: int, mask: BandMask, keep_isolated: bool, keep_out_of_range: bool
@@ -116,6 +119,7 @@ class SequenceCache:
 
     @classmethod
     def load(cls, path: str | Path) -> 'SequenceCache':
+        """Read a cache written by `save`."""
         with np.load(path) as data:
             meta = json.loads(bytes(data['meta']).decode())
             counts = meta['band_counts']

@@ -54,6 +54,7 @@ class BandSearchConfig:
     n_intervals: int = 1000
 
     def validate(self) -> None:
+        """Raise ConfigError naming the first setting that cannot work."""
         if not 1 <= self.min_bands <= self.max_bands:
             raise ConfigError(f'need 1 <= min_bands <= max_bands, got min_bands = '
                               f'{self.min_bands}, max_bands = {self.max_bands}')
@@ -82,6 +83,7 @@ class SequenceSpec:
 
     @property
     def label(self) -> str:
+        """The name given, else the first bag's file name."""
         return self.name or Path(self.bags[0]).name
 
 
@@ -123,6 +125,7 @@ class ResultsLog:
         return key in self.rows
 
     def append(self, row: dict) -> None:
+        """Add one result row to the log, flushed to disk at once (a kill keeps it)."""
         with self.path.open('a') as f:
             f.write(json.dumps(row, sort_keys=True, default=_json_default) + '\n')
             f.flush()
@@ -187,6 +190,7 @@ class BandSearch:
             meta_path.write_text(json.dumps(meta, indent=2) + '\n')
 
     def fingerprint(self, mask: BandMask) -> str:
+        """Hash of the points `mask` keeps in every training scan (equal: same result)."""
         key = mask_key(mask)
         if key not in self._fingerprints:
             flags = (self.config.spectral.keep_isolated, self.config.spectral.keep_out_of_range)
@@ -249,6 +253,7 @@ class BandSearch:
         return self._executor
 
     def close(self) -> None:
+        """Release the executor (worker processes, Ray connection)."""
         if self._executor is not None:
             self._executor.close()
             self._executor = None
@@ -375,4 +380,5 @@ def _brief(row: dict) -> dict:
 
 
 def band_counts_for(cfg: BandSearchConfig) -> list[int]:
+    """The band counts B the search covers: min_bands..max_bands."""
     return list(range(cfg.min_bands, cfg.max_bands + 1))

@@ -105,6 +105,7 @@ class KissIcpOdometry:
         self.odometry = KissICP(kiss_config)
 
     def register_frame(self, scan: Scan) -> KissFrame:
+        """Register one scan with kiss-icp; its pose is stamped at the sweep end."""
         points = np.ascontiguousarray(scan.points_xyz, dtype=np.float64)
         times = scan.time_offset_s
         use_times = (self.config.deskew and times is not None and len(times)

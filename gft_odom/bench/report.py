@@ -113,6 +113,7 @@ def _f(value) -> str:
 
 
 def machine_info() -> dict:
+    """Python version, CPU type and count, and the load average now."""
     load = os.getloadavg()[0] if hasattr(os, 'getloadavg') else None
     return {'python': platform.python_version(), 'machine': platform.machine(),
             'cpu_count': os.cpu_count(), 'load_avg_1min_at_end': load}
@@ -134,6 +135,7 @@ def bench_to_dict(bench: BenchRun, settings: dict) -> dict:
 
 
 def write_json(path: Path, document: dict) -> Path:
+    """Write the bench document as indented JSON, atomically."""
     return write_text_atomic(path, json.dumps(document, indent=2, sort_keys=False,
                                               default=_json_default) + '\n')
 

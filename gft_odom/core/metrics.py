@@ -56,6 +56,7 @@ class MetricsConfig:
     lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M
 
     def validate(self) -> None:
+        """Raise ConfigError naming the first value that cannot work."""
         _check_args(self.mode, self.max_diff_s, self.match, self.max_gap_s, self.lengths_m)
 
 
@@ -479,6 +480,7 @@ class TrajectoryEvaluator:
 
     @classmethod
     def from_config(cls, cfg: MetricsConfig) -> 'TrajectoryEvaluator':
+        """An evaluator with the settings of `cfg` (validated)."""
         cfg.validate()
         return cls(cfg.mode, cfg.max_diff_s, cfg.lengths_m, cfg.match, cfg.max_gap_s)
 
@@ -504,6 +506,7 @@ class TrajectoryEvaluator:
             rpe_count_per_length=tuple(drift['count_per_length']))
 
     def evaluate(self, est: Trajectory, ref: Trajectory) -> dict:
+        """The metrics of `est` against `ref` as a JSON-ready dict."""
         return self.metrics(est, ref).as_dict()
 
 

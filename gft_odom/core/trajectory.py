@@ -28,10 +28,12 @@ class Trajectory:
 
     @property
     def positions_xyz(self) -> np.ndarray:
+        """(N, 3) positions of the body in the world frame."""
         return self.poses[:, :3, 3]
 
     @property
     def stamps_s(self) -> np.ndarray:
+        """(N,) stamps in float seconds (for plots and evo; ns stay exact)."""
         return self.stamps_ns.astype(np.float64) * 1e-9
 
     def path_length_m(self) -> float:

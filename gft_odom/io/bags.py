@@ -195,6 +195,7 @@ class ScanBagReader:
 
     @property
     def paths(self) -> list[Path]:
+        """The bag files or folders, in the order they are read."""
         return list(self._source.paths)
 
     def __enter__(self) -> 'ScanBagReader':
@@ -204,6 +205,7 @@ class ScanBagReader:
         self.close()
 
     def close(self) -> None:
+        """Close the bag files."""
         self._source.close()
 
     def __len__(self) -> int:
@@ -300,6 +302,7 @@ class BagWriter:
         self.counts: dict[str, int] = {}
 
     def open(self) -> 'BagWriter':
+        """Create the bag (BagError when it cannot be created)."""
         try:
             if self.fmt == 'ros1':
                 from rosbags.rosbag1 import Writer as Writer1

@@ -48,6 +48,7 @@ class GroundTruthConfig:
     lidar_to_gps_xyz_m: tuple[float, float, float] = (-0.22, 0.0, 0.153)
 
     def validate(self) -> None:
+        """Raise ConfigError unless the LiDAR -> GPS offset is 3 finite numbers."""
         xyz = self.lidar_to_gps_xyz_m
         if not isinstance(xyz, (tuple, list)) or len(xyz) != 3:
             raise ConfigError(f'ground_truth.lidar_to_gps_xyz_m needs 3 values, got {xyz!r}')

@@ -54,6 +54,7 @@ class FieldSpec:
 
     @property
     def size_bytes(self) -> int:
+        """Bytes the field takes in one point (datatype size times count)."""
         return DATATYPE_SIZES[self.datatype] * self.count
 
 
@@ -69,6 +70,7 @@ class CloudLayout:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """The field names, in table order."""
         return tuple(f.name for f in self.fields)
 
 

@@ -42,10 +42,12 @@ class Vlp16Model:
 
     @property
     def n_columns(self) -> int:
+        """Firing columns in one sweep (360 deg / azimuth step)."""
         return int(round(360.0 / self.azimuth_step_deg))
 
     @property
     def period_s(self) -> float:
+        """Duration of one sweep."""
         return 1.0 / self.rate_hz
 
     def ray_table(self) -> dict[str, np.ndarray]:

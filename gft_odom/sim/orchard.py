@@ -165,6 +165,7 @@ class Orchard:
 
     @property
     def rotation_2d(self) -> np.ndarray:
+        """2-D rotation from row-aligned axes to world x, y."""
         c, s = np.cos(self.heading_rad), np.sin(self.heading_rad)
         return np.array([[c, -s], [s, c]])
 

@@ -153,6 +153,7 @@ class ScanSimulator:
         return cls(orchard, motion, config, seed)
 
     def stamp_ns(self, index: int) -> int:
+        """Header stamp of sweep `index` (the sweep start)."""
         return self.start_ns + index * self.period_ns
 
     def sensor_poses(self, t_s: np.ndarray) -> np.ndarray:

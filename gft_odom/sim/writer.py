@@ -53,6 +53,7 @@ class SimulationResult:
 
     @property
     def median_seconds_per_scan(self) -> float:
+        """Median wall time to simulate one sweep (0 when none)."""
         return float(np.median(self.seconds_per_scan)) if self.seconds_per_scan else 0.0
 
 

@@ -28,6 +28,7 @@ log = logging.getLogger('gft_odom')
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The gft-odom parser with every sub-command."""
     parser = argparse.ArgumentParser(
         prog='gft-odom',
         description='Graph-frequency filtered LiDAR odometry for orchards.')
@@ -41,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the gft-odom command line; package errors become one log line and exit 1."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

@@ -54,6 +54,7 @@ def _ament_prefixes() -> list[str]:
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom bench`."""
     p = add_command(
         subparsers, 'bench',
         'benchmark paper ICP, our registration (each +/- filter) and kiss-icp',

@@ -14,6 +14,7 @@ HEADER = ('Parameters of gft_odom (filter_odom_node and the gft-odom tools).\n'
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom config`."""
     p = add_command(
         subparsers, 'config', 'print or write the effective parameters (params-file format)',
         'Defaults, overlaid with --config and --set, checked, printed as a ROS 2 '
@@ -24,6 +25,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Print or write the effective parameters."""
     config = load_config(args.config, args.overrides)
     if args.out:
         write_params_file(args.out, config, header=HEADER)

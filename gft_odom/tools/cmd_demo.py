@@ -40,6 +40,7 @@ COLUMNS = (
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom demo`."""
     p = add_command(
         subparsers, 'demo', 'simulate an orchard bag and replay it with and without the filter',
         'The embedded default: a SYNTHETIC orchard (not real data) replayed in '
@@ -69,6 +70,7 @@ def format_table(rows: list[tuple[str, dict]]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Simulate, replay four ways, write and print the table."""
     out = Path(args.out)
     if (out / 'data').exists():  # the demo's own simulated bag from an earlier run
         shutil.rmtree(out / 'data')

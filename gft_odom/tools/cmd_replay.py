@@ -15,6 +15,7 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom replay`."""
     p = add_command(
         subparsers, 'replay', 'replay bags through the odometry pipeline',
         'Replay LiDAR scans from ROS 1 .bag files (split parts in time order) or '
@@ -37,6 +38,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Replay the bags and write the results folder."""
     overrides = list(args.overrides)
     if args.no_filter:
         overrides.append('pipeline.use_spectral_filter=false')

@@ -14,6 +14,7 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom search-bands`."""
     p = add_command(
         subparsers, 'search-bands',
         'search band masks on training bags, score the best held-out',
@@ -59,6 +60,7 @@ def pair_sequences(bags: list[str], gts: list[str], what: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    """Search the masks and write the results and best_mask.yaml."""
     from gft_odom.bands.run import run_band_search, summary_markdown
     from gft_odom.bands.search import BandSearchConfig
 

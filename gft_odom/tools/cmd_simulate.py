@@ -15,6 +15,7 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom simulate`."""
     p = add_command(
         subparsers, 'simulate', 'simulate a VLP-16 on a Jackal driving through a citrus orchard',
         'Simulate a VLP-16 on a Jackal in a synthetic citrus orchard and write a '
@@ -40,6 +41,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Simulate the drive and write its bag and ground truth."""
     from tqdm import tqdm
 
     config = dataclasses.replace(SimConfig(), motion_distortion=not args.no_distortion,

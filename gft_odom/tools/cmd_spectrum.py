@@ -30,6 +30,7 @@ MAX_EXTRAPOLATION_S = 0.1
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The parser of `gft-odom spectrum`."""
     p = add_command(
         subparsers, 'spectrum', 'colour a merged cloud by graph frequency (PNG)',
         'Merge the first N scans of a bag into the world frame with ground-truth '
@@ -139,6 +140,7 @@ def draw(points: np.ndarray, nu: np.ndarray, positions: np.ndarray, out: Path,
 
 
 def run(args: argparse.Namespace) -> int:
+    """Merge the scans and draw their frequencies."""
     from gft_odom.core.spectral import SpectralFilter
     from gft_odom.io.bags import ScanBagReader
     from gft_odom.io.ground_truth import read_ground_truth
