@@ -86,12 +86,11 @@ class OdometryPipeline:
 
     @property
     def use_filter(self) -> bool:
-        """Filter on, and its mask can drop something (an all-pass mask that also keeps the
-        isolated and out-of-range points returns the input: its spectrum is not computed)."""
-        spectral = self.config.spectral
-        drops_nothing = (self.band_mask.is_all_pass and spectral.keep_isolated
-                         and spectral.keep_out_of_range)
-        return self.config.pipeline.use_spectral_filter and not drops_nothing
+        """Whether every scan gets its per-point frequencies (`pipeline.use_spectral_filter`).
+
+        With an all-pass mask nothing is dropped, but the frequencies are still computed and
+        published (`~/filtered_points` `frequency` / `band`): the filter is always visible."""
+        return self.config.pipeline.use_spectral_filter
 
     def register_frame(self, scan: Scan, freqs: PointFrequencies | None = None
                        ) -> FrameResult:
@@ -106,7 +105,8 @@ class OdometryPipeline:
         kept = cropped
         if self.use_filter and len(cropped):
             if freqs is None:
-                result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask)
+                result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask,
+                                                    ring=cropped.ring)
                 keep, nu_all, band_all = result.keep, result.nu, result.band
             else:
                 keep = self._precomputed_keep(cropped, freqs)

@@ -191,7 +191,7 @@ def build_sequence_cache(bags: Sequence[str | Path], gt_path: str | Path,
             if i >= total:
                 break
             cropped = cropper._crop(scan)
-            freqs = spectral.frequencies_multi(cropped.points_xyz, counts)
+            freqs = spectral.frequencies_multi(cropped.points_xyz, counts, ring=cropped.ring)
             first = freqs[counts[0]]
             stamps.append(int(scan.stamp_ns))
             points.append(np.asarray(cropped.points_xyz, dtype=np.float64))

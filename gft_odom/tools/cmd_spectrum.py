@@ -88,7 +88,7 @@ def merge_frequencies(scans, traj, spectral_filter, max_scans: int, every: int =
         if index % every:
             continue
         T = pose_at(stamps, poses, scan.stamp_ns)
-        freqs = spectral_filter.frequencies(scan.points_xyz)
+        freqs = spectral_filter.scan_frequencies(scan)
         ok = freqs.finite
         points.append(transform_points(T, scan.points_xyz[ok]))
         nus.append(freqs.nu[ok])
