@@ -118,13 +118,17 @@ def test_scan_line_graph_joins_azimuth_and_ring_neighbours():
         if r + 1 < 4:
             expected.add(tuple(sorted((k, index[(r + 1, c)]))))  # the ring above
     assert pairs == expected
-    W = scan_line_graph(xyz, ring, tau_m=10.0, sigma_m=0.5, max_azimuth_gap_rad=0.5 * step)
+    W, order = scan_line_graph(xyz, ring, tau_m=10.0, sigma_m=0.5,
+                               max_azimuth_gap_rad=0.5 * step)
+    ring = ring[order]  # W's nodes are in scan-line order
     assert (W != W.T).nnz == 0 and W.diagonal().max() == 0.0
     # Each point: two ring neighbours, plus one per adjacent ring (1 or 2 of them).
     degree_count = np.diff(W.indptr)
     np.testing.assert_array_equal(degree_count, 2 + (ring > 0).astype(int) + (ring < 3))
     # tau cuts the edges longer than it: the ring steps of 0.87 m go, the 0.1 m rises stay.
-    W_cut = scan_line_graph(xyz, ring, tau_m=0.5, sigma_m=0.5, max_azimuth_gap_rad=0.5 * step)
+    W_cut, order_cut = scan_line_graph(xyz[order], ring, tau_m=0.5, sigma_m=0.5,
+                                       max_azimuth_gap_rad=0.5 * step)
+    np.testing.assert_array_equal(order_cut, np.arange(len(ring)))  # already in order
     np.testing.assert_array_equal(np.diff(W_cut.indptr),
                                   (ring > 0).astype(int) + (ring < 3))
 
