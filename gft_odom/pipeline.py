@@ -18,6 +18,7 @@ from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
+from gft_odom.core.spectral.sources import make_source
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError, SpectralError
@@ -77,6 +78,7 @@ class OdometryPipeline:
         self.config = config
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
+        self.frequency_source = make_source(self.spectral_filter)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
         self.status_counts: Counter[str] = Counter()
@@ -85,12 +87,11 @@ class OdometryPipeline:
 
     @property
     def use_filter(self) -> bool:
-        """Filter on, and its mask can drop something (an all-pass mask that also keeps the
-        isolated and out-of-range points returns the input: its spectrum is not computed)."""
-        spectral = self.config.spectral
-        drops_nothing = (self.band_mask.is_all_pass and spectral.keep_isolated
-                         and spectral.keep_out_of_range)
-        return self.config.pipeline.use_spectral_filter and not drops_nothing
+        """Whether every scan gets its per-point frequencies (`pipeline.use_spectral_filter`).
+
+        With an all-pass mask nothing is dropped, but the frequencies are still computed and
+        published (`~/filtered_points` `frequency` / `band`): the filter is always visible."""
+        return self.config.pipeline.use_spectral_filter
 
     def register_frame(self, scan: Scan, freqs: PointFrequencies | None = None
                        ) -> FrameResult:
@@ -105,13 +106,10 @@ class OdometryPipeline:
         kept = cropped
         if self.use_filter and len(cropped):
             if freqs is None:
-                result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask)
-                keep, nu_all, band_all = result.keep, result.nu, result.band
-            else:
-                keep = self._precomputed_keep(cropped, freqs)
-                nu_all, band_all = freqs.nu, freqs.band
+                freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+            keep = self._precomputed_keep(cropped, freqs)
             kept = cropped.select(keep)
-            nu, band = nu_all[keep], band_all[keep]
+            nu, band = freqs.nu[keep], freqs.band[keep]
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
         flat_std_m = thinnest_axis_std_m(kept.points_xyz)
@@ -126,7 +124,10 @@ class OdometryPipeline:
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
                                              kept.time_offset_s)
         t3 = time.perf_counter()
-        # 4. Update: odom -> base_link, trajectory, counters.
+        # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map.
+        if self.use_filter and not reg.status.startswith('fallback'):
+            self.frequency_source.observe(cropped, reg.T_world_sensor)
+        t4 = time.perf_counter()  # a local-map source's keyframe update is filter time
         T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
         if self.record_trajectory:
@@ -136,8 +137,8 @@ class OdometryPipeline:
             stamp_ns=int(scan.stamp_ns), T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
             n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
-            timings_s={'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
-                       'pipeline': t3 - t0})
+            timings_s={'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
+                       'pipeline': t4 - t0})
 
     def _precomputed_keep(self, cropped: Scan, freqs: PointFrequencies) -> np.ndarray:
         if len(freqs) != len(cropped):
@@ -163,6 +164,7 @@ class OdometryPipeline:
         if config.registration != self.config.registration:
             raise ConfigError('registration parameters can only change before the first scan')
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.frequency_source = make_source(self.spectral_filter)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 

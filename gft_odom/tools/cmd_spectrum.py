@@ -66,7 +66,7 @@ def merge_frequencies(scans, traj, spectral_filter, max_scans: int, every: int =
         if index % every:
             continue
         T = traj.pose_at(scan.stamp_ns, MAX_EXTRAPOLATION_S)
-        freqs = spectral_filter.frequencies(scan.points_xyz)
+        freqs = spectral_filter.scan_frequencies(scan)
         ok = freqs.finite
         points.append(transform_points(T, scan.points_xyz[ok]))
         nus.append(freqs.nu[ok])

@@ -88,3 +88,88 @@ def components(W: sp.spmatrix) -> tuple[int, np.ndarray]:
     """Connected components of the graph: (count, label of every vertex)."""
     n_comp, labels = connected_components(W, directed=False)
     return int(n_comp), labels
+
+
+# Key spacing between rings in the scan-line sort key: larger than the 2 pi azimuth span.
+_RING_KEY_STEP = 8.0
+
+
+def _scan_line_sorted(points_xyz: np.ndarray, ring: np.ndarray, max_azimuth_gap_rad: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(order, i, j): the points sorted by (ring, azimuth), and the scan-line edges as
+    positions in that order. Ring edges are (k, k + 1) plus each ring's closing edge; a
+    cross-ring edge joins k to the nearest-azimuth point of the ring above."""
+    xyz = np.asarray(points_xyz, dtype=np.float64)
+    ring = np.asarray(ring).astype(np.int64, copy=False)
+    n = xyz.shape[0]
+    if n < 2:
+        empty = np.zeros(0, np.int64)
+        return np.arange(n), empty, empty
+    key = ring * _RING_KEY_STEP + (np.arctan2(xyz[:, 1], xyz[:, 0]) + np.pi)
+    order = np.argsort(key)
+    key_sorted = key[order]
+    ring_sorted = ring[order]
+    # Along a ring: consecutive points in azimuth, and the ring's last point to its first.
+    same = ring_sorted[1:] == ring_sorted[:-1]
+    first = np.flatnonzero(np.r_[True, ~same])
+    last = np.r_[first[1:] - 1, n - 1]
+    closes = last - first >= 2  # a ring of two points is already joined once
+    k = np.arange(n - 1)[same]
+    # Across rings: the nearest azimuth in the ring above (the sorted neighbours around it).
+    query = key_sorted + _RING_KEY_STEP
+    pos = np.searchsorted(key_sorted, query)
+    below = np.minimum(np.maximum(pos - 1, 0), n - 1)
+    above = np.minimum(pos, n - 1)
+    up = ring_sorted + 1
+    gap_below = np.where(ring_sorted[below] == up, np.abs(key_sorted[below] - query), np.inf)
+    gap_above = np.where(ring_sorted[above] == up, np.abs(key_sorted[above] - query), np.inf)
+    nearest = np.where(gap_below <= gap_above, below, above)
+    cross = np.flatnonzero(np.minimum(gap_below, gap_above) <= max_azimuth_gap_rad)
+    i = np.concatenate([k, last[closes], cross])
+    j = np.concatenate([k + 1, first[closes], nearest[cross]])
+    return order, i, j
+
+
+def scan_line_edges(points_xyz: np.ndarray, ring: np.ndarray,
+                    max_azimuth_gap_rad: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges (i, j) along the scan lines of a spinning LiDAR, each edge once, as
+    input indices.
+
+    Every point is joined to the next point of its own ring in azimuth (the ring closes on
+    itself) and to the point of the ring above with the nearest azimuth, if one lies within
+    `max_azimuth_gap_rad`. Uses only the `ring` field and the azimuth, so it needs no KD-tree
+    and does not assume the cloud is organised or in firing order.
+    """
+    order, i, j = _scan_line_sorted(points_xyz, ring, max_azimuth_gap_rad)
+    return order[i], order[j]
+
+
+def scan_line_graph(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float, sigma_m: float,
+                    max_azimuth_gap_rad: float = 0.05, dtype=np.float64
+                    ) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Thresholded Gaussian weights (3-D distance) on the `scan_line_edges`.
+
+    Returns (W, order): W (n, n) CSR over the points in scan-line order, node k being input
+    point `order[k]`. Numbering the nodes along the scan lines makes the ring edges
+    neighbouring rows, so the weights come from differences of consecutive rows and the CSR
+    is assembled without a general sort.
+    """
+    if not tau_m > 0.0 or not sigma_m > 0.0:
+        raise SpectralError(f'tau_m and sigma_m must be > 0, got tau_m={tau_m}, '
+                            f'sigma_m={sigma_m}')
+    xyz = np.asarray(points_xyz, dtype=np.float64)
+    n = xyz.shape[0]
+    order, i, j = _scan_line_sorted(xyz, ring, max_azimuth_gap_rad)
+    xyz = xyz[order]
+    diff = xyz[i] - xyz[j]
+    d2 = np.einsum('ij,ij->i', diff, diff)
+    near = (d2 <= tau_m * tau_m) & (i != j)
+    i, j, d2 = i[near], j[near], d2[near]
+    w = np.exp(d2 * (-0.5 / sigma_m**2)).astype(dtype, copy=False)
+    rows = np.concatenate([i, j])
+    cols = np.concatenate([j, i])
+    by_row = np.argsort(rows, kind='stable')
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+    W = sp.csr_matrix((np.concatenate([w, w])[by_row], cols[by_row], indptr), shape=(n, n))
+    return W, order
