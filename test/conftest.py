@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-# Plain helper modules beside this file (synthetic_clouds) are importable from every test.
+# Plain helper modules beside this file (helpers.py) are importable from every test.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -10,16 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 SCRIPT = Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_frequency_classes.py'
 
 
 @pytest.fixture(scope='module')
 def bench():
-    spec = importlib.util.spec_from_file_location('bench_frequency_classes', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(SCRIPT)
 
 
 def test_mutual_information_is_the_entropy_for_a_perfect_band_and_zero_for_noise(bench):

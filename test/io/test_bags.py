@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from synthetic_clouds import velodyne_columns
+from helpers import velodyne_columns
 
 from gft_odom.core.geometry import rpy_transform
 from gft_odom.errors import BagError, GroundTruthError

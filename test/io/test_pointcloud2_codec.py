@@ -8,9 +8,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers import velodyne_columns
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from synthetic_clouds import velodyne_columns
 
 from gft_odom.core.types import Scan
 from gft_odom.errors import CodecError

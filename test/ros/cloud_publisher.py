@@ -12,7 +12,7 @@ from gft_odom.io.pointcloud2 import VELODYNE_XYZIRT, encode_cloud
 from gft_odom.ros.conversions import blob_to_msg
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script
-from synthetic_clouds import velodyne_columns  # noqa: E402
+from helpers import velodyne_columns  # noqa: E402
 
 
 def main() -> None:

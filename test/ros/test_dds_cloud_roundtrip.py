@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
-
-
-def _load_publisher_module():
-    path = Path(__file__).with_name('cloud_publisher.py')
-    spec = importlib.util.spec_from_file_location('cloud_publisher', path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module, path
 
 
 def test_cloud_crosses_dds_between_processes(ros_env, ros_node):
@@ -27,7 +19,8 @@ def test_cloud_crosses_dds_between_processes(ros_env, ros_node):
 
     from gft_odom.io.pointcloud2 import decode_scan
 
-    publisher_module, publisher_path = _load_publisher_module()
+    publisher_path = Path(__file__).with_name('cloud_publisher.py')
+    publisher_module = load_script(publisher_path)
     seed, n = 7, 30_000
     expected = publisher_module.velodyne_columns(n, seed)
     proc = subprocess.Popen([sys.executable, str(publisher_path), str(seed), str(n)],

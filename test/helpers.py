@@ -1,6 +1,10 @@
-"""Random velodyne-like columns for codec, bag and DDS tests (one definition for all)."""
+"""Helpers the tests share: random velodyne-like columns, scripts imported as modules."""
 
 from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -16,3 +20,11 @@ def velodyne_columns(n: int, seed: int = 0) -> dict[str, np.ndarray]:
         'ring': rng.integers(0, 16, n).astype(np.uint16),
         'time': rng.uniform(0, 0.1, n).astype(np.float32),
     }
+
+
+def load_script(path: Path) -> ModuleType:
+    """A Python file that is not in a package (a benchmark, a helper process) as a module."""
+    spec = importlib.util.spec_from_file_location(Path(path).stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
