@@ -83,7 +83,8 @@ def test_bench_figures_read_on_their_own(tmp_path, closed_figures):
     ax = traj_fig.axes[0]
     x0, x1 = ax.get_xlim()
     assert -5.0 < x0 and x1 < 15.0  # the ground truth (0..10 m) plus a margin, not 60 m
-    lines = [ln for ln in ax.get_lines() if not ln.get_label().startswith('_')]
+    lines = [ln for ln in ax.get_lines()
+             if not ln.get_label().startswith(('_', 'ground truth'))]
     top = max(lines, key=lambda ln: ln.get_zorder())
     assert top.get_label().startswith('good')
     legend = [t.get_text() for t in ax.get_legend().get_texts()]
