@@ -33,6 +33,8 @@ def frequency_cloud(points_xyz: np.ndarray, intensity: np.ndarray | None,
     n = points_xyz.shape[0]
     if nu.shape != (n,) or band.shape != (n,):
         raise PcdError(f'{n} points but {nu.shape[0]} frequencies and {band.shape[0]} bands')
+    if n and (band.min() < 0 or band.max() > np.iinfo(np.uint8).max):
+        raise PcdError(f'band numbers {band.min()}..{band.max()} do not fit the uint8 band field')
     cloud = np.zeros(n, dtype=FREQUENCY_CLOUD_DTYPE)
     cloud['x'], cloud['y'], cloud['z'] = points_xyz.T
     if intensity is not None:

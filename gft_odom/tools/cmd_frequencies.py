@@ -19,6 +19,8 @@ from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
+MAX_BANDS = 255  # the band field is uint8 (U1)
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -80,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
     from gft_odom.pipeline import OdometryPipeline
 
     config = load_config_any_mask(args.config, args.overrides)
+    if config.spectral.n_bands > MAX_BANDS:
+        from gft_odom.errors import ConfigError
+        raise ConfigError(f'spectral.n_bands = {config.spectral.n_bands}: the PCD band field is '
+                          f'uint8, at most {MAX_BANDS} bands')
     pipeline = OdometryPipeline(config, record_trajectory=False)
     out_dir = Path(args.out)
     with ScanBagReader(args.bags, args.topic) as reader:

@@ -83,5 +83,7 @@ def test_bad_files_raise_pcd_error(tmp_path):
         read_pcd(tmp_path / 'missing.pcd')
     with pytest.raises(PcdError, match='frequencies'):
         frequency_cloud(np.zeros((3, 3)), None, np.zeros(2), np.zeros(3, np.uint8))
+    with pytest.raises(PcdError, match='uint8'):
+        frequency_cloud(np.zeros((1, 3)), None, np.zeros(1), np.array([300]))
     with pytest.raises(PcdError, match='scalar'):
         pcd_header(np.dtype([('v', '<f4', (3,))]), 1)

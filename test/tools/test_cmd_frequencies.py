@@ -84,12 +84,14 @@ def test_bad_input_is_one_line_and_exit_code_1(sim_run, tmp_path, caplog):
         ([str(sim_run.bag_path), '--out', str(tmp_path / 'b'), '--topic', '/nope'], '/nope'),
         ([str(sim_run.bag_path), '--out', str(tmp_path / 'c'), '--set', 'spectral.n_bands=0'],
          'n_bands'),
+        ([str(sim_run.bag_path), '--out', str(tmp_path / 'd'), '--set', 'spectral.n_bands=300'],
+         'uint8'),
     ]
     for args, word in cases:
         caplog.clear()
         assert main(['frequencies', '--quiet', *args]) == 1
         errors = [r.getMessage() for r in caplog.records if r.levelname == 'ERROR']
         assert len(errors) == 1 and '\n' not in errors[0] and word in errors[0], errors
-    assert not any((tmp_path / d).exists() for d in 'abc')
+    assert not any((tmp_path / d).exists() for d in 'abcd')
     assert main(['spectrum', '--gt', str(sim_run.gt_tum_path), '--out',
                  str(tmp_path / 'x.png')]) == 1
