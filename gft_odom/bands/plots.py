@@ -51,6 +51,7 @@ def plot_band_correlation(path: str | Path, table: dict[int, np.ndarray], label:
         ax.set_xticks(np.arange(1, n + 1))
         ax.tick_params(labelsize=7)
     axes[0][0].set_ylabel('Pearson r (band present, ATE RMSE)')
+    fig.supxlabel('band b of B (1 = lowest graph frequency nu, B = highest)', fontsize=8)
     axes[0][0].set_ylim(-1.0, 1.0)
     fig.suptitle(f'Band presence vs error (negative: keeping the band lowers the error), '
                  f'{label}', fontsize=9)

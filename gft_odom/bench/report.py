@@ -7,6 +7,7 @@ import math
 import os
 import platform
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -253,6 +254,26 @@ def markdown_page(document: dict, figures: dict[str, str], notes: str = '') -> s
     return '\n'.join(lines).rstrip() + '\n'
 
 
+def _method_colours(methods: Sequence[str]) -> dict[str, str]:
+    """One colour per method, the same in every figure and panel."""
+    palette = ('tab:blue', 'tab:orange', 'tab:green', 'tab:red', 'tab:purple', 'tab:brown',
+               'tab:pink', 'tab:olive', 'tab:cyan')
+    return {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+
+
+def _plain_log_ticks(ax, lo: float, hi: float) -> None:
+    """Log y axis labelled in plain numbers (5, 10, 20, 50, 100 ms), not 10^1 / 10^2."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator
+
+    decades = np.arange(np.floor(np.log10(max(lo, 1e-9))), np.ceil(np.log10(hi)) + 1)
+    ticks = [m * 10.0 ** d for d in decades for m in (1, 2, 5)]
+    ticks = [t for t in ticks if lo / 1.5 <= t <= hi * 1.5]
+    ax.yaxis.set_major_locator(FixedLocator(ticks))
+    ax.yaxis.set_major_formatter(lambda value, _pos: f'{value:g}')
+    ax.yaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
 def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
                  prefix: str = 'bench_') -> dict[str, Path]:
     """ATE per scenario, latency distribution, trajectories of one sequence."""
@@ -263,25 +284,35 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     methods = list(document['summary'])
+    colours = _method_colours(methods)
     scenarios = list(dict.fromkeys(s.scenario for s in bench.sequences))
     paths: dict[str, Path] = {}
 
-    # 1. ATE RMSE per scenario (mean over seeds) and method.
-    fig, ax = plt.subplots(figsize=(9, 4.2))
+    # 1. ATE RMSE per scenario and method: mean over seeds, whiskers min..max over seeds.
+    fig, ax = plt.subplots(figsize=(10, 4.2))
     width = 0.8 / max(len(methods), 1)
     for i, method in enumerate(methods):
-        means = []
+        means, spans = [], []
         for scenario in scenarios:
-            vals = [r.metrics.get('ate_rmse_m') for r in bench.runs
-                    if r.method == method and r.sequence.scenario == scenario]
-            means.append(_mean(vals) or np.nan)
-        ax.bar(np.arange(len(scenarios)) + (i - (len(methods) - 1) / 2) * width, means, width,
-               label=method)
+            vals = [v for v in (r.metrics.get('ate_rmse_m') for r in bench.runs
+                                if r.method == method and r.sequence.scenario == scenario)
+                    if v is not None and math.isfinite(v)]
+            mean = _mean(vals) if vals else None
+            means.append(np.nan if mean is None else mean)
+            spans.append((mean - min(vals), max(vals) - mean) if vals else (np.nan, np.nan))
+        x = np.arange(len(scenarios)) + (i - (len(methods) - 1) / 2) * width
+        ax.bar(x, means, width, label=method, color=colours[method],
+               yerr=np.array(spans).T, capsize=2, error_kw={'elinewidth': 0.8})
     ax.set_xticks(np.arange(len(scenarios)), scenarios)
     ax.set_yscale('log')
+    all_ate = [v for v in (r.metrics.get('ate_rmse_m') for r in bench.runs)
+               if v is not None and math.isfinite(v) and v > 0.0]
+    if all_ate:
+        _plain_log_ticks(ax, min(all_ate), max(all_ate))
     ax.set_ylabel('ATE RMSE [m] (log)')
-    ax.set_title('ATE RMSE per scenario, mean over seeds (synthetic orchard)')
-    ax.legend(fontsize=8, ncol=len(methods))
+    ax.set_title('ATE RMSE per scenario: bars mean over seeds, whiskers min..max over seeds '
+                 '(synthetic orchard)', fontsize=9)
+    ax.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     ax.grid(axis='y', alpha=0.3, which='both')
     fig.tight_layout()
     paths['ATE per scenario'] = out_dir / f'{prefix}ate.png'
@@ -297,6 +328,10 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
     ax.axhline(LATENCY_TARGET_P95_MS, color='red', ls='--', lw=1, label='50 ms')
     ax.axhline(100.0, color='grey', ls=':', lw=1, label='100 ms (10 Hz real time)')
     ax.set_yscale('log')
+    pooled = np.concatenate([d for d in data if d.size]) if any(d.size for d in data) else None
+    if pooled is not None:
+        lo = min(float(np.percentile(pooled, 1)), LATENCY_TARGET_P95_MS)
+        _plain_log_ticks(ax, max(lo, 1e-3), max(float(np.percentile(pooled, 99)), 100.0))
     ax.set_ylabel('per-scan latency [ms] (log); whiskers 5-95 %')
     ax.set_title('Per-scan latency (decode + per-scan call), all sequences pooled')
     ax.legend(fontsize=8)
@@ -307,13 +342,14 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
     plt.close(fig)
 
     # 3. Trajectories of the first sequence of each scenario, GPS antenna frame, aligned as
-    #    the ATE aligns them (same `ate` code as the metrics).
+    #    the ATE aligns them (same `ate` code as the metrics); the view is the ground truth
+    #    plus a margin (a diverging run must not shrink the others), the best run drawn last.
     ev = document['settings']['evaluation_config']
-    fig, axes = plt.subplots(1, len(scenarios), figsize=(4.5 * len(scenarios), 4.5),
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(4.5 * len(scenarios), 4.8),
                              squeeze=False)
     for ax, scenario in zip(axes[0], scenarios):
         seq = next(s for s in bench.sequences if s.scenario == scenario)
-        ref = None
+        ref, curves = None, []
         for r in bench.runs:
             if r.sequence is not seq:
                 continue
@@ -325,20 +361,34 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
             except GftOdomError:  # a plot must not end a finished benchmark
                 continue
             aligned = est.positions_xyz @ res.T_ref_est[:3, :3].T + res.T_ref_est[:3, 3]
-            ax.plot(aligned[:, 0], aligned[:, 1], lw=1, label=r.method)
+            curves.append((r.metrics.get('ate_rmse_m'), r.method, aligned))
         if ref is not None:
-            ax.plot(ref.positions_xyz[:, 0], ref.positions_xyz[:, 1], 'k--', lw=1.2,
-                    label='ground truth (GPS)')
-        ax.set_aspect('equal', adjustable='datalim')
+            gt = ref.positions_xyz[:, :2]
+            margin = max(2.0, 0.15 * float(np.ptp(gt, axis=0).max()))
+            lo, hi = gt.min(axis=0) - margin, gt.max(axis=0) + margin
+            ax.plot(gt[:, 0], gt[:, 1], 'k--', lw=0.9, label='ground truth (GPS)', zorder=4)
+        # Worst first, best last (on top).
+        curves.sort(key=lambda c: -(c[0] if c[0] is not None else np.inf))
+        for k, (ate_m, method, xy) in enumerate(curves):
+            best = k == len(curves) - 1
+            label = method if ate_m is None else f'{method} ({ate_m:.2f} m)'
+            if ref is not None and not ((xy[:, :2] >= lo) & (xy[:, :2] <= hi)).all():
+                label += ', leaves the view'
+            ax.plot(xy[:, 0], xy[:, 1], lw=1.8 if best else 1.0, color=colours[method],
+                    label=label, zorder=3 if best else 2)
+        if ref is not None:
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect('equal', adjustable='box')
         ax.set_title(seq.name, fontsize=9)
         ax.set_xlabel('x [m]')
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc='best', title='method (ATE RMSE)', title_fontsize=6)
     axes[0][0].set_ylabel('y [m]')
-    axes[0][0].legend(fontsize=7)
-    fig.suptitle('Trajectories after position alignment (GPS antenna)', fontsize=10)
+    fig.suptitle('Trajectories after position alignment (GPS antenna)\nview: the ground truth '
+                 'plus a margin; best run on top', fontsize=10)
     fig.tight_layout()
     paths['trajectories'] = out_dir / f'{prefix}trajectories.png'
     fig.savefig(paths['trajectories'], dpi=100)
     plt.close(fig)
     return paths
-

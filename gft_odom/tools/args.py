@@ -10,10 +10,10 @@ def add_command(subparsers, name: str, help: str, description: str) -> argparse.
     return subparsers.add_parser(name, help=help, description=description)
 
 
-def add_bags(parser: argparse.ArgumentParser,
-                      help: str = 'bag file(s) or rosbag2 folder') -> None:
+def add_bags(parser: argparse.ArgumentParser, help: str = 'bag file(s) or rosbag2 folder',
+             nargs: str = '+') -> None:
     """The input bags (positional) and --topic."""
-    parser.add_argument('bags', nargs='+', metavar='BAG', help=help)
+    parser.add_argument('bags', nargs=nargs, metavar='BAG', help=help)
     parser.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
 
 

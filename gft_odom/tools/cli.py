@@ -17,6 +17,7 @@ from gft_odom.errors import GftOdomError
 SUBCOMMAND_MODULES = (
     'simulate',
     'spectrum',
+    'frequencies',
     'replay',
     'demo',
     'config',
