@@ -65,6 +65,19 @@ def installed_node(tmp_path_factory):
 
 
 @pytest.fixture
+def closed_figures(monkeypatch):
+    """The matplotlib figures the code under test closes, kept open for the test to inspect."""
+    from gft_odom.figures import pyplot
+
+    plt = pyplot()
+    kept, close = [], plt.close
+    monkeypatch.setattr(plt, 'close', lambda fig=None: kept.append(fig))
+    yield kept
+    for fig in kept:
+        close(fig)
+
+
+@pytest.fixture
 def refuses_file(tmp_path):
     """`refuses_file(read, text, error, match, name)`: `read` of a file holding `text` raises
     `error` with a message matching `match`."""

@@ -3,22 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from gft_odom.bands.plots import plot_band_correlation, plot_interval_counts
-
-
-@pytest.fixture
-def closed_figures(monkeypatch):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    kept, close = [], plt.close
-    monkeypatch.setattr(plt, 'close', lambda fig=None: kept.append(fig))
-    yield kept
-    for fig in kept:
-        close(fig)
 
 
 def test_fig7_has_an_x_label(tmp_path, closed_figures):

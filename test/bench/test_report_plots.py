@@ -6,26 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from gft_odom.bench.report import plot_figures
 from gft_odom.bench.runner import BenchRun, BenchSequence, MethodRun
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.replay import ReplayResult
-
-
-@pytest.fixture
-def closed_figures(monkeypatch):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    kept, close = [], plt.close
-    monkeypatch.setattr(plt, 'close', lambda fig=None: kept.append(fig))
-    yield kept
-    for fig in kept:
-        close(fig)
 
 
 def _trajectory(xy: np.ndarray) -> Trajectory:
