@@ -16,19 +16,12 @@ from gft_odom.core.metrics import ate
 from gft_odom.errors import GftOdomError
 from gft_odom.io.atomic import write_text_atomic
 from gft_odom.replay import estimate_for_ground_truth
+from gft_odom.tables import cell, columns, markdown_table
 
 # Per-method summary columns: (title, key, format).
-SUMMARY_COLUMNS = (
-    ('ATE RMSE [m]', 'ate_rmse_m', '{:.3f}'),
-    ('ATE mean [m]', 'ate_mean_m', '{:.3f}'),
-    ('RPE drift [%]', 'rpe_drift_pct', '{:.2f}'),
-    ('paper MSE [m^2]', 'paper_mse_m2', '{:.4f}'),
-    ('latency median [ms]', 'latency_median_ms', '{:.1f}'),
-    ('latency p95 [ms]', 'latency_p95_ms', '{:.1f}'),
-    ('points kept', 'points_kept_mean', '{:.0f}'),
-    ('kept [%]', 'points_kept_pct', '{:.1f}'),
-    ('fallbacks', 'fallbacks', '{:d}'),
-)
+SUMMARY_COLUMNS = columns('ate_rmse_m', 'ate_mean_m', 'rpe_drift_pct', 'paper_mse_m2',
+                          'latency_median_ms', 'latency_p95_ms', 'points_kept_mean',
+                          'points_kept_pct', 'fallbacks')
 # Accuracy figures averaged over sequences (each sequence counts once).
 MEAN_KEYS = ('ate_rmse_m', 'ate_mean_m', 'rpe_drift_pct', 'paper_mse_m2', 'points_kept_mean')
 LATENCY_TARGET_P95_MS = 50.0
@@ -153,20 +146,9 @@ def _json_default(value):
     raise TypeError(f'not JSON serialisable: {type(value).__name__}')
 
 
-def _cell(value, fmt: str) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return 'n/a'
-    return fmt.format(value)
-
-
 def summary_table(summary: dict[str, dict]) -> str:
     """Markdown: one row per method."""
-    lines = ['| method | ' + ' | '.join(t for t, _, _ in SUMMARY_COLUMNS) + ' |',
-             '|---|' + '---:|' * len(SUMMARY_COLUMNS)]
-    for method, row in summary.items():
-        cells = [_cell(row.get(key), fmt) for _, key, fmt in SUMMARY_COLUMNS]
-        lines.append(f'| {method} | ' + ' | '.join(cells) + ' |')
-    return '\n'.join(lines)
+    return markdown_table(summary.items(), SUMMARY_COLUMNS, 'method', align_right=True)
 
 
 def per_sequence_table(document: dict) -> str:
@@ -176,7 +158,7 @@ def per_sequence_table(document: dict) -> str:
     lat = {(r['sequence'], r['method']): r.get('latency_median_ms') for r in document['runs']}
     lines = ['| sequence | ' + ' | '.join(methods) + ' |', '|---|' + '---:|' * len(methods)]
     for seq in document['sequences']:
-        cells = [f'{_cell(ate.get((seq, m)), "{:.3f}")} ({_cell(lat.get((seq, m)), "{:.0f}")})'
+        cells = [f'{cell(ate.get((seq, m)), "{:.3f}")} ({cell(lat.get((seq, m)), "{:.0f}")})'
                  for m in methods]
         lines.append(f'| {seq} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
@@ -214,7 +196,7 @@ def markdown_page(document: dict, figures: dict[str, str], notes: str = '') -> s
         "to after the method's per-scan call returns; the same reader and loop for all "
         'methods, methods interleaved per sequence so load changes hit all alike. '
         f'Machine: {m["cpu_count"]} cores shared with other jobs (1-min load '
-        f'{_cell(m["load_avg_1min_at_end"], "{:.1f}")} at the end), Python {m["python"]}.',
+        f'{cell(m["load_avg_1min_at_end"], "{:.1f}")} at the end), Python {m["python"]}.',
         '- Accuracy: `gft_odom.replay.summarize` (the code behind `gft-odom replay`): ATE with '
         f'`{s["evaluation"]}` alignment against the GPS antenna track (`gt.csv`, the estimate '
         'moved to the antenna by the LiDAR->GPS lever arm), RPE drift in % of distance, and '

@@ -5,11 +5,6 @@ from __future__ import annotations
 import argparse
 
 
-def add_command(subparsers, name: str, help: str, description: str) -> argparse.ArgumentParser:
-    """A sub-command's parser: `help` in the command list, `description` in its --help."""
-    return subparsers.add_parser(name, help=help, description=description)
-
-
 def add_bags(parser: argparse.ArgumentParser, help: str = 'bag file(s) or rosbag2 folder',
              nargs: str = '+') -> None:
     """The input bags (positional) and --topic."""

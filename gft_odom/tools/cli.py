@@ -1,8 +1,8 @@
 """`gft-odom`: one command, one sub-command per task.
 
 Each sub-command lives in its own module `gft_odom.tools.cmd_<name>` exposing
-`add_parser(subparsers)` (returns the parser) and `run(args) -> int`. Only this module turns
-package errors into exit codes.
+`HELP` (one line for the command list), `DESCRIPTION` (for its --help), `add_arguments(p)`
+and `run(args) -> int`. Only this module turns package errors into exit codes.
 """
 
 from __future__ import annotations
@@ -37,7 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
     for name in SUBCOMMAND_MODULES:
         module = importlib.import_module(f'gft_odom.tools.cmd_{name}')
-        p = module.add_parser(sub)
+        p = sub.add_parser(name.replace('_', '-'), help=module.HELP,
+                           description=module.DESCRIPTION)
+        module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
 

@@ -30,7 +30,7 @@ from gft_odom.io.atomic import write_text_atomic
 from gft_odom.params_file import load_config
 from gft_odom.sim.motion import SCENARIOS
 from gft_odom.sim.simulator import SimConfig
-from gft_odom.tools.args import add_command, add_config, add_switches
+from gft_odom.tools.args import add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -53,14 +53,14 @@ def _ament_prefixes() -> list[str]:
     return [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The parser of `gft-odom bench`."""
-    p = add_command(
-        subparsers, 'bench',
-        'benchmark paper ICP, our registration (each +/- filter) and kiss-icp',
-        'Simulate orchard drives (every scenario x seed), replay each through the '
-        'five methods with the same clock and metrics; write JSON, a Markdown page '
-        'and plots. The band mask comes from --config (chosen on other seeds).')
+HELP = 'benchmark paper ICP, our registration (each +/- filter) and kiss-icp'
+DESCRIPTION = ('Simulate orchard drives (every scenario x seed), replay each through the '
+               'five methods with the same clock and metrics; write JSON, a Markdown page '
+               'and plots. The band mask comes from --config (chosen on other seeds).')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom bench`."""
     p.add_argument('--seeds', type=int, nargs='+', default=list(DEFAULT_SEEDS),
                    help=f'simulator seeds (default {" ".join(map(str, DEFAULT_SEEDS))}); keep '
                         'them disjoint from those the band mask was chosen on')
@@ -93,7 +93,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--kiss-threads', type=int, default=d.max_num_threads,
                    help='0 = all cores (kiss-icp default)')
     add_switches(p)
-    return p
 
 
 def run(args: argparse.Namespace) -> int:

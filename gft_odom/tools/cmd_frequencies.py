@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gft_odom.tools.args import add_bags, add_command, add_config, add_switches
+from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -22,19 +22,18 @@ log = logging.getLogger(__name__)
 MAX_BANDS = 255  # the band field is uint8 (U1)
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The parser of `gft-odom frequencies`."""
-    p = add_command(
-        subparsers, 'frequencies',
-        'per-point graph frequency and band of every scan, as PCD files',
-        'Write one binary PCD per scan (<header stamp ns>.pcd, sensor frame) with '
-        'fields x y z intensity frequency band for every point after the range '
-        'crop, whatever the band mask (band 0 / frequency NaN: no spectrum).')
+HELP = 'per-point graph frequency and band of every scan, as PCD files'
+DESCRIPTION = ('Write one binary PCD per scan (<header stamp ns>.pcd, sensor frame) with '
+               'fields x y z intensity frequency band for every point after the range '
+               'crop, whatever the band mask (band 0 / frequency NaN: no spectrum).')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom frequencies`."""
     add_bags(p)
     p.add_argument('--out', required=True, help='output folder for the PCD files')
     add_config(p)
     add_switches(p, figures=False)
-    return p
 
 
 def _scan_frequencies(spectral_filter, scan, n_bands: int):

@@ -8,19 +8,20 @@ import logging
 
 from gft_odom.params_file import load_config
 from gft_odom.replay import run_replay, write_results
-from gft_odom.tools.args import add_bags, add_command, add_config, add_switches
+from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The parser of `gft-odom replay`."""
-    p = add_command(
-        subparsers, 'replay', 'replay bags through the odometry pipeline',
-        'Replay LiDAR scans from ROS 1 .bag files (split parts in time order) or '
-        'rosbag2 folders through the pipeline; write TUM poses, metrics.json, the '
-        'effective config and figures to --out.')
+HELP = 'replay bags through the odometry pipeline'
+DESCRIPTION = ('Replay LiDAR scans from ROS 1 .bag files (split parts in time order) or '
+               'rosbag2 folders through the pipeline; write TUM poses, metrics.json, the '
+               'effective config and figures to --out.')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom replay`."""
     add_bags(p)
     p.add_argument('--out', required=True, help='results folder')
     p.add_argument('--gt', help='ground truth: gt.csv, gt.bag (/gps/fix/odometry) or TUM file')
@@ -34,7 +35,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument('--node-exe', help='path of filter_odom_node for --through-node '
                    '(default: <prefix>/lib/gft_odom/filter_odom_node from AMENT_PREFIX_PATH)')
     add_switches(p)
-    return p
 
 
 def run(args: argparse.Namespace) -> int:

@@ -7,23 +7,23 @@ import logging
 
 from gft_odom.errors import ConfigError
 from gft_odom.params_file import load_config
-from gft_odom.tools.args import add_bags, add_command, add_config, add_switches
+from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The parser of `gft-odom search-bands`."""
-    p = add_command(
-        subparsers, 'search-bands',
-        'search band masks on training bags, score the best held-out',
-        'Rank band masks by trajectory error on the training bags (in-sample), '
-        'report the chosen mask on --test bags (held-out) beside the unfiltered '
-        'baseline, and write best_mask.yaml for filter_odom_node --params-file. '
-        'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
-        'one sequence. Results are appended as they finish: rerun the same command '
-        'to resume.')
+HELP = 'search band masks on training bags, score the best held-out'
+DESCRIPTION = ('Rank band masks by trajectory error on the training bags (in-sample), '
+               'report the chosen mask on --test bags (held-out) beside the unfiltered '
+               'baseline, and write best_mask.yaml for filter_odom_node --params-file. '
+               'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
+               'one sequence. Results are appended as they finish: rerun the same command '
+               'to resume.')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom search-bands`."""
     add_bags(p, help='training bag(s)')
     p.add_argument('--gt', nargs='+', required=True, metavar='GT',
                    help='ground truth per training bag (gt.csv, gt.bag or TUM)')
@@ -43,7 +43,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_config(p)
     p.add_argument('--max-scans', type=int, help='use the first N scans of each sequence')
     add_switches(p)
-    return p
 
 
 def pair_sequences(bags: list[str], gts: list[str], what: str):

@@ -16,7 +16,7 @@ import numpy as np
 
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.figures import NO_SPECTRUM_COLOUR, pyplot
-from gft_odom.tools.args import add_bags, add_command, add_config
+from gft_odom.tools.args import add_bags, add_config
 
 log = logging.getLogger(__name__)
 
@@ -25,13 +25,14 @@ MAX_PLOT_POINTS = 1_500_000
 MAX_EXTRAPOLATION_S = 0.1
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The parser of `gft-odom spectrum`."""
-    p = add_command(
-        subparsers, 'spectrum', 'colour a merged cloud by graph frequency (PNG)',
-        'Merge the first N scans of a bag into the world frame with ground-truth '
-        "sensor poses and write a PNG coloured by each point's graph frequency "
-        'nu (top-down and side view).')
+HELP = 'colour a merged cloud by graph frequency (PNG)'
+DESCRIPTION = ('Merge the first N scans of a bag into the world frame with ground-truth '
+               "sensor poses and write a PNG coloured by each point's graph frequency "
+               'nu (top-down and side view).')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom spectrum`."""
     add_bags(p, nargs='*')
     p.add_argument('--pcd', metavar='DIR',
                    help='instead of bags: a folder written by `gft-odom frequencies` (the '
@@ -49,7 +50,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='quantile: each colour holds an equal share of the points (nu is '
                         'far from uniform); linear: nu 0..1 (default quantile)')
     p.add_argument('--title', help='figure title')
-    return p
 
 
 def scan_frequencies(scans, spectral_filter):
