@@ -46,7 +46,7 @@ from gft_odom.core.spectral.graph import (
     GraphLaplacian,
     components,
     gaussian_graph,
-    scan_line_graph,
+    scan_line_laplacian,
 )
 from gft_odom.core.spectral.slicing import Slices, slice_points, voxelise
 from gft_odom.errors import ConfigError, SpectralError
@@ -336,19 +336,20 @@ class SpectralFilter:
             index = np.flatnonzero(finite) if not finite.all() else None
             coords = points if index is None else points[index]
             ring_f = np.asarray(ring) if index is None else np.asarray(ring)[index]
-            W, order = scan_line_graph(coords, ring_f, self.config.tau_m,
-                                       self.config.scan_line_sigma_m,
-                                       self.config.scan_line_max_azimuth_gap_rad)
+            L, order = scan_line_laplacian(coords, ring_f, self.config.tau_m,
+                                           self.config.scan_line_sigma_m,
+                                           self.config.scan_line_max_azimuth_gap_rad)
+            W = L.W
             if index is not None:
                 order = index[order]
             sl = Slices(order=order, starts=np.array([0, order.size], dtype=np.int64),
                         slice_of_point=np.zeros(order.size, dtype=np.int64), in_range=finite,
                         z_bottom_m=np.full(1, np.nan))
-            coords = points[order]
+            coords = points[order] if self.definition.needs_position_signal else None
             node_of_point = np.arange(order.size)
             node_block = sl.slice_of_point
             starts = sl.starts
-            points_per_node = np.ones(order.size, dtype=np.int64)
+            points_per_node = 1
         else:
             z = np.where(finite, points[:, 2], np.nan)
             sl = slice_points(z, self.config.slice_thickness_m, self.config.z_min_m,
@@ -359,7 +360,7 @@ class SpectralFilter:
             t = time.perf_counter()
             W = gaussian_graph(coords, node_block, self.config.tau_m, self.config.sigma_m)
             points_per_node = np.bincount(node_of_point, minlength=coords.shape[0])
-        L = GraphLaplacian(W)
+            L = GraphLaplacian(W)
         # A node with no neighbour is isolated (band 0) unless it merges several points: those
         # form a cluster tighter than the voxel, i.e. a perfectly smooth component (nu = 0).
         isolated_nodes = (np.diff(W.indptr) == 0) & (points_per_node <= 1)

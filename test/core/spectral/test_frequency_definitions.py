@@ -189,3 +189,15 @@ def test_one_block_lanczos_is_close_to_the_exact_lambda_max():
     one = lambda_max_lanczos(L, np.array([0, 300]), n_iter=30)
     assert one.shape == (1,)
     assert exact * 0.999 <= one[0] <= exact * 1.02
+
+
+def test_scan_line_laplacian_degrees_are_the_row_sums_with_empty_rows():
+    from gft_odom.core.spectral.graph import scan_line_laplacian
+    xyz, ring, _ = ring_cloud()
+    # Far-away points on their own rings: rows with no edge, some sorted last.
+    xyz = np.concatenate([xyz, [[50.0, 0.0, 0.0], [0.0, 60.0, 3.0]]])
+    ring = np.concatenate([ring, [20, 21]])
+    L, order = scan_line_laplacian(xyz, ring, tau_m=1.0, sigma_m=0.5)
+    np.testing.assert_allclose(L.degree, np.asarray(L.W.sum(axis=1)).ravel(), atol=1e-12)
+    assert np.sum(L.degree == 0.0) == 2
+    assert sorted(order.tolist()) == list(range(len(xyz)))
