@@ -37,10 +37,9 @@ def test_every_params_file_loads_with_known_keys_and_types(path):
 
 MODE_OVERLAYS = {
     'paper_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (3, 4),
-                            'spectral.method': 'signal', 'spectral.lanczos_iterations': 30,
-                            'registration.mode': 'paper'},
-    'default_mode_gft.yaml': {'spectral.n_bands': 5, 'spectral.band_mask': (1, 2, 3),
-                              'spectral.method': 'signal', 'spectral.lanczos_iterations': 30},
+                            'spectral.method': 'signal', 'spectral.graph': 'slice',
+                            'spectral.lanczos_iterations': 30, 'registration.mode': 'paper'},
+    'default_mode_gft.yaml': {'spectral.n_bands': 3, 'spectral.band_mask': (1,)},
 }
 
 
