@@ -106,10 +106,12 @@ class SpectralConfig:
     # points at K = 20 (95.7 % at 10, 98.7 % at 30, 99.0 % at 60) in bench_spectral; the cost
     # of the recursion is linear in K.
     chebyshev_order: int = 20
-    # Batched Lanczos over all slices: 30 steps give lambda_max within 4e-4 (median) of ARPACK,
-    # worst underestimate 3e-4 (20 steps: 3e-3, 6e-3), at a fraction of ARPACK's time.
+    # Lanczos steps for lambda_max (Ritz residual added). Scan-line graph of a VLP-16 scan: 8
+    # steps are within 1.3 % of ARPACK (10: 1.0 %) and give ARPACK's band to 98.1 % of the
+    # points for `ldos_mean` (30: 98.9 %), at a quarter of the cost of 30. Slice graphs with
+    # the Chebyshev `signal` path want 30 (within 4e-4 of ARPACK; the paper-mode overlay).
     lambda_max_method: str = 'lanczos'
-    lanczos_iterations: int = 10
+    lanczos_iterations: int = 8
     # Hutchinson probes of the `kpm` definition (its Chebyshev order is `chebyshev_order`).
     kpm_probes: int = 8
     # Isolated points (no neighbour within tau) are band 0; kept so all-pass returns the input.
