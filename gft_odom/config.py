@@ -38,6 +38,7 @@ class PipelineConfig:
     max_points_per_scan: int = 120000
 
     def validate(self) -> None:
+        """Raise ConfigError naming the first value that cannot work."""
         if not (self.min_range_m >= 0.0 and math.isfinite(self.min_range_m)):
             raise ConfigError(f'min_range_m must be >= 0, got {self.min_range_m}')
         if not self.max_range_m > self.min_range_m:
@@ -73,6 +74,7 @@ class NodeConfig:
     input_reliable: bool = False
 
     def validate(self) -> None:
+        """Raise ConfigError naming the first value that cannot work."""
         for name in ('odom_frame', 'base_frame'):
             value = getattr(self, name)
             if not value or value.startswith('/'):
@@ -104,6 +106,7 @@ class GftOdomConfig:
     evaluation: MetricsConfig = field(default_factory=MetricsConfig)
 
     def validate(self) -> None:
+        """Validate every section; the error names the section."""
         for section in dataclasses.fields(self):
             try:
                 getattr(self, section.name).validate()

@@ -6,24 +6,76 @@ works without a display.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from gft_odom.core.trajectory import Trajectory
+from gft_odom.io.atomic import write_atomic
 
 # Paper Figure 3: low graph frequencies dark blue, high frequencies light green.
-FREQUENCY_COLOURS = ('#08215e', '#1b4f9c', '#2a8fa8', '#55c49a', '#b6f08c')
+FREQUENCY_COLOURS = ('#081d58', '#253494', '#1d91c0', '#41b6c4', '#7fcdbb', '#c7e9b4',
+                     '#edf8b1')
+NO_SPECTRUM_COLOUR = '#d0d0d0'
+# Map figures show the path plus this much around it: the far, sparse returns of a +-60 m
+# sweep otherwise shrink the path to a speck.
+PATH_MARGIN_M = 15.0
 
 
-def frequency_colormap():
+def frequency_colormap(n_colours: int = 256):
+    """The colour map of graph frequency nu: dark blue (low) to light green (high)."""
     from matplotlib.colors import LinearSegmentedColormap
-    return LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS)
+    return LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS, N=n_colours)
 
 
-def _pyplot():
+def distinct_labels(values, min_decimals: int = 2, max_decimals: int = 6) -> list[str]:
+    """Fewest decimals (>= min_decimals) at which neighbouring values read differently."""
+    values = np.asarray(values, dtype=float)
+    for decimals in range(min_decimals, max_decimals + 1):
+        labels = [f'{v:.{decimals}f}' for v in values]
+        if all(a != b for a, b in zip(labels, labels[1:])):
+            return labels
+    return [f'{v:.{max_decimals}g}' for v in values]
+
+
+def quantile_norm(values: np.ndarray, n_steps: int = 10, cmap_colours=FREQUENCY_COLOURS):
+    """(cmap, norm, edges): one colour per quantile step, so each colour holds an equal share
+    of the values (nu and heights are far from uniform). edges None: too few distinct values,
+    a linear scale over their range instead."""
+    from matplotlib.colors import BoundaryNorm, LinearSegmentedColormap, Normalize
+
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size > n_steps:
+        edges = np.unique(np.quantile(finite, np.linspace(0.0, 1.0, n_steps + 1)))
+        if edges.size >= 3:
+            cmap = LinearSegmentedColormap.from_list('quantiles', cmap_colours,
+                                                     N=edges.size - 1)
+            return cmap, BoundaryNorm(edges, cmap.N), edges
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    cmap = LinearSegmentedColormap.from_list('linear', cmap_colours)
+    return cmap, Normalize(lo, hi if hi > lo else lo + 1.0), None
+
+
+def label_quantile_colourbar(bar, edges, what: str = 'points') -> None:
+    """Ticks at the quantile edges with distinct labels; say the steps are quantiles."""
+    if edges is None:
+        return
+    bar.set_ticks(edges)
+    bar.set_ticklabels(distinct_labels(edges))
+    steps = edges.size - 1
+    name = 'deciles' if steps == 10 else f'{steps} quantile steps'
+    bar.ax.set_title(f'{name}\n(equal share\nof {what})', fontsize=7)
+
+
+def path_window(path_xy: np.ndarray, margin_m: float = PATH_MARGIN_M):
+    """(lo, hi) corners of the path's bounding box grown by `margin_m`."""
+    path_xy = np.asarray(path_xy, dtype=float).reshape(-1, 2)
+    return path_xy.min(axis=0) - margin_m, path_xy.max(axis=0) + margin_m
+
+
+def pyplot():
+    """matplotlib.pyplot with the Agg backend (no display needed), imported on first use."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -33,15 +85,11 @@ def _pyplot():
 def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
     """Save atomically (temp file then rename) and close the figure."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip('.') or 'png', bbox_inches='tight')
-        os.replace(tmp, path)
+        write_atomic(path, lambda f: fig.savefig(f, dpi=dpi, format=path.suffix.lstrip('.')
+                                                 or 'png', bbox_inches='tight'))
     finally:
-        Path(tmp).unlink(missing_ok=True)
-        _pyplot().close(fig)
+        pyplot().close(fig)
     return path
 
 
@@ -53,10 +101,25 @@ def aligned_positions(estimate: Trajectory, reference: Trajectory) -> np.ndarray
     return estimate.positions_xyz @ T[:3, :3].T + T[:3, 3]
 
 
+def run_label(metrics: dict | None) -> str:
+    """'paper ICP + GFT filter (B=4 [3, 4])' / 'default ICP, filter off' from a run's metrics."""
+    if not metrics or 'registration_mode' not in metrics:
+        return 'estimate'
+    mode = f'{metrics["registration_mode"]} ICP'
+    n_bands, mask = metrics.get('n_bands'), list(metrics.get('band_mask') or [])
+    if not metrics.get('use_spectral_filter', True):
+        return f'{mode}, filter off'
+    if n_bands is not None and mask == list(range(1, int(n_bands) + 1)):
+        return f'{mode}, all-pass mask (B={n_bands})'
+    return f'{mode} + GFT filter (B={n_bands} {mask})'
+
+
 def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajectory | None,
-                    metrics: dict | None = None, label: str = 'gft_odom') -> Path:
-    """Top-down estimated path (aligned to the reference when there is one)."""
-    plt = _pyplot()
+                    metrics: dict | None = None, label: str | None = None) -> Path:
+    """Top-down estimated path (aligned to the reference when there is one); the legend names
+    the run (registration mode and band mask, from `metrics`) unless `label` is given."""
+    label = run_label(metrics) if label is None else label
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 6))
     if reference is not None and len(reference):
         ax.plot(*reference.positions_xyz[:, :2].T, color='0.3', lw=2.0, label='ground truth')
@@ -80,27 +143,54 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajector
 
 
 def plot_map(path: str | Path, points_world: np.ndarray, nu: np.ndarray | None,
-             trajectory: Trajectory | None = None, max_points: int = 300_000) -> Path:
-    """Merged map, top view, coloured by normalised graph frequency (grey when unfiltered)."""
-    plt = _pyplot()
+             trajectory: Trajectory | None = None, max_points: int = 300_000,
+             margin_m: float = PATH_MARGIN_M) -> Path:
+    """Merged map, top view, around the path, coloured by graph frequency on a quantile scale
+    (grey, and said so, when no spectrum was computed)."""
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 7))
+    points_world = np.asarray(points_world).reshape(-1, 3)
+    nu = None if nu is None else np.asarray(nu)
+    if trajectory is not None and len(trajectory):
+        lo, hi = path_window(trajectory.positions_xyz[:, :2], margin_m)
+        inside = ((points_world[:, :2] >= lo) & (points_world[:, :2] <= hi)).all(axis=1)
+        points_world = points_world[inside]
+        nu = nu[inside] if nu is not None else None
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
     if len(points_world) > max_points:
         pick = np.random.default_rng(0).choice(len(points_world), max_points, replace=False)
         points_world = points_world[pick]
         nu = nu[pick] if nu is not None else None
-    has_nu = nu is not None and nu.size and np.isfinite(nu).any()
-    if has_nu:
-        order = np.argsort(nu)  # high frequencies drawn last, on top
+    has = np.isfinite(nu) if nu is not None else np.zeros(len(points_world), dtype=bool)
+    if has.any():
+        cmap, norm, edges = quantile_norm(nu[has])
+        if not has.all():
+            ax.scatter(points_world[~has, 0], points_world[~has, 1], c=NO_SPECTRUM_COLOUR,
+                       s=0.3, linewidths=0, rasterized=True)
+            ax.plot([], [], 's', color=NO_SPECTRUM_COLOUR, label='no spectrum (isolated, '
+                    'outside the z range)')
+        # Low frequencies (trunks, frames) last, on top of the canopy.
+        order = np.flatnonzero(has)[np.argsort(-nu[has], kind='stable')]
         sc = ax.scatter(points_world[order, 0], points_world[order, 1], c=nu[order], s=0.3,
-                        cmap=frequency_colormap(), vmin=0.0, vmax=1.0, linewidths=0)
-        fig.colorbar(sc, ax=ax, label='normalised graph frequency  \u03bd = \u03bb / \u03bb_max')
+                        cmap=cmap, norm=norm, linewidths=0, rasterized=True)
+        bar = fig.colorbar(sc, ax=ax, label='graph frequency  \u03bd = \u03bb / \u03bb_max')
+        label_quantile_colourbar(bar, edges)
+        title = 'merged map of the points registration used, by graph frequency'
     else:
-        ax.scatter(points_world[:, 0], points_world[:, 1], c='0.4', s=0.3, linewidths=0)
+        ax.scatter(points_world[:, 0], points_world[:, 1], c='0.4', s=0.3, linewidths=0,
+                   rasterized=True)
+        title = 'merged map (top view)'
+        ax.text(0.02, 0.02, 'no graph frequencies: the spectrum was not computed\n'
+                '(filter off, or an all-pass mask)', transform=ax.transAxes, fontsize=9,
+                va='bottom', ha='left', bbox={'facecolor': 'white', 'alpha': 0.8,
+                                              'edgecolor': '0.6'})
     if trajectory is not None and len(trajectory):
         ax.plot(*trajectory.positions_xyz[:, :2].T, color='tab:red', lw=1.5, label='odometry')
-        ax.legend(loc='upper right')
-    ax.set_title('merged map (top view)')
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc='upper right', fontsize=8)
+    ax.set_title(title)
     ax.set_xlabel('x [m]')
     ax.set_ylabel('y [m]')
-    ax.set_aspect('equal', adjustable='datalim')
+    ax.set_aspect('equal', adjustable='box')
     return save_figure(fig, path)

@@ -7,16 +7,15 @@ so one YAML file configures both, and every run writes its effective config back
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable
 
 import yaml
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
+from gft_odom.core.constants import NODE_NAME
 from gft_odom.errors import ConfigError
-
-NODE_NAME = 'filter_odom_node'
+from gft_odom.io.atomic import write_text_atomic
 
 
 def _flatten_nested(prefix: str, tree: dict, out: dict[str, Any]) -> None:
@@ -34,9 +33,9 @@ def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
     try:
         document = yaml.safe_load(path.read_text())
     except OSError as exc:
-        raise ConfigError(f'cannot read params file {path}: {exc.strerror or exc}') from None
+        raise ConfigError(f'cannot read params file {path}: {exc.strerror or exc}') from exc
     except yaml.YAMLError as exc:
-        raise ConfigError(f'params file {path} is not valid YAML: {exc}') from None
+        raise ConfigError(f'params file {path} is not valid YAML: {exc}') from exc
     if not isinstance(document, dict):
         raise ConfigError(f'params file {path}: expected a mapping of node names, '
                           f'got {type(document).__name__}')
@@ -71,7 +70,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     try:
         value = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
-        raise ConfigError(f'override {text!r}: value is not valid YAML: {exc}') from None
+        raise ConfigError(f'override {text!r}: value is not valid YAML: {exc}') from exc
     return key.strip(), value
 
 
@@ -110,17 +109,7 @@ def config_to_yaml(config: GftOdomConfig, header: str = '') -> str:
 
 def write_params_file(path: str | Path, config: GftOdomConfig, header: str = '') -> Path:
     """Write `config` atomically (temp file + rename): a reader never sees half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'w') as f:
-            f.write(config_to_yaml(config, header))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text_atomic(path, config_to_yaml(config, header))
 
 
 def packaged_params_file(name: str) -> Path:

@@ -25,10 +25,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
-from gft_odom.core.geometry import invert_transform, rpy_transform
+from gft_odom.core.constants import NS_PER_S
+from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
+from gft_odom.core.spectral.sources import make_source
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError, SpectralError
@@ -123,9 +125,9 @@ class OdometryPipeline:
         self.config = config
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
+        self.frequency_source = make_source(self.spectral_filter)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
-        self.T_sensor_base = invert_transform(self.T_base_sensor)
         self.status_counts: Counter[str] = Counter()
         self._stamps_ns: list[int] = []
         self._poses: list[np.ndarray] = []
@@ -140,6 +142,7 @@ class OdometryPipeline:
         """Re-initialise the odometry: the next scan is the first again (pose identity,
         empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
         self.registration.reset()
+        self.frequency_source.reset()  # a local-map source holds keyframes of the old run
         self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
@@ -164,7 +167,7 @@ class OdometryPipeline:
         last = self._last_accepted_ns
         if last is None:
             return None, 'first'
-        max_gap_ns = self.config.registration.max_gap_s * 1e9
+        max_gap_ns = self.config.registration.max_gap_s * NS_PER_S
         stamp = int(scan.stamp_ns)
         if 0 < stamp - last <= max_gap_ns:
             return None, 'normal'
@@ -175,8 +178,8 @@ class OdometryPipeline:
             return Rejection('out_of_order', f'skipping scan stamped {stamp} ns, not after the '
                              f'previous one ({last} ns)'), ''
         return Rejection('clock_jump', f'holding back scan stamped {stamp} ns, '
-                         f'{(stamp - last) * 1e-9:.1f} s after the previous one: accepted only '
-                         'if the next scan continues from it'), ''
+                         f'{(stamp - last) / NS_PER_S:.1f} s after the previous one: accepted '
+                         'only if the next scan continues from it'), ''
 
     def _admit(self, scan: Scan) -> Rejection | None:
         """Screen `scan` and commit the decision to the acceptance state."""
@@ -186,7 +189,7 @@ class OdometryPipeline:
             self.status_counts[f'rejected_{rejection.reason}'] += 1
             last = self._last_accepted_ns
             if (rejection.reason in ('out_of_order', 'clock_jump') and last is not None
-                    and abs(stamp - last) > self.config.registration.max_gap_s * 1e9):
+                    and abs(stamp - last) > self.config.registration.max_gap_s * NS_PER_S):
                 self._jump_candidate_ns = stamp
             return rejection
         if kind == CLOCK_RESET:
@@ -196,19 +199,18 @@ class OdometryPipeline:
             self.reset()
         elif kind == 'gap':
             log.warning('the stamps jumped by %.1f s and stayed: re-acquiring the motion',
-                        (stamp - self._last_accepted_ns) * 1e-9)
+                        (stamp - self._last_accepted_ns) / NS_PER_S)
         self._last_accepted_ns = stamp
         self._jump_candidate_ns = None
         return None
 
     @property
     def use_filter(self) -> bool:
-        """Filter on, and its mask can drop something (an all-pass mask that also keeps the
-        isolated and out-of-range points returns the input: its spectrum is not computed)."""
-        spectral = self.config.spectral
-        drops_nothing = (self.band_mask.is_all_pass and spectral.keep_isolated
-                         and spectral.keep_out_of_range)
-        return self.config.pipeline.use_spectral_filter and not drops_nothing
+        """Whether every scan gets its per-point frequencies (`pipeline.use_spectral_filter`).
+
+        With an all-pass mask nothing is dropped, but the frequencies are still computed and
+        published (`~/filtered_points` `frequency` / `band`): the filter is always visible."""
+        return self.config.pipeline.use_spectral_filter
 
     def register_frame(self, scan: Scan, freqs: PointFrequencies | None = None
                        ) -> FrameResult:
@@ -232,13 +234,10 @@ class OdometryPipeline:
         kept = cropped
         if self.use_filter and len(cropped):
             if freqs is None:
-                result = self.spectral_filter.apply(cropped.points_xyz, self.band_mask)
-                keep, nu_all, band_all = result.keep, result.nu, result.band
-            else:
-                keep = self._precomputed_keep(cropped, freqs)
-                nu_all, band_all = freqs.nu, freqs.band
+                freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+            keep = self._precomputed_keep(cropped, freqs)
             kept = cropped.select(keep)
-            nu, band = nu_all[keep], band_all[keep]
+            nu, band = freqs.nu[keep], freqs.band[keep]
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
         flat_std_m = thinnest_axis_std_m(kept.points_xyz)
@@ -250,8 +249,11 @@ class OdometryPipeline:
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
                                              kept.time_offset_s)
         t3 = time.perf_counter()
-        # 4. Update: odom -> base_link, trajectory, counters.
-        T_odom_base = self.T_base_sensor @ reg.T_world_sensor @ self.T_sensor_base
+        # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map.
+        if self.use_filter and not reg.status.startswith('fallback'):
+            self.frequency_source.observe(cropped, reg.T_world_sensor)
+        t4 = time.perf_counter()  # a local-map source's keyframe update is filter time
+        T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
         if self.record_trajectory:
             self._stamps_ns.append(int(scan.stamp_ns))
@@ -260,8 +262,8 @@ class OdometryPipeline:
             stamp_ns=int(scan.stamp_ns), T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
             n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
-            timings_s={'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
-                       'pipeline': t3 - t0})
+            timings_s={'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
+                       'pipeline': t4 - t0})
 
     def _rejected(self, scan: Scan, rejection: Rejection) -> FrameResult:
         T_world_sensor = self.registration.T_world_sensor.copy()
@@ -297,6 +299,7 @@ class OdometryPipeline:
         if config.registration != self.config.registration:
             raise ConfigError('registration parameters can only change before the first scan')
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.frequency_source = make_source(self.spectral_filter)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 
@@ -308,4 +311,4 @@ class OdometryPipeline:
     def base_trajectory(self) -> Trajectory:
         """T_odom_base of every registered scan: what the node publishes."""
         traj = self.sensor_trajectory()
-        return Trajectory(traj.stamps_ns, self.T_base_sensor @ traj.poses @ self.T_sensor_base)
+        return Trajectory(traj.stamps_ns, sensor_to_base_poses(traj.poses, self.T_base_sensor))

@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -26,6 +24,7 @@ from gft_odom.core.metrics import TrajectoryEvaluator
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import BagError, GftOdomError, GroundTruthError
+from gft_odom.io.atomic import make_temp_dir, replace, write_text_atomic
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.io.tum import write_tum
@@ -190,16 +189,8 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
     return metrics
 
 
-def _atomic_path(path: Path):
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
-
-
 def write_json(path: Path, data: dict) -> None:
-    tmp = _atomic_path(path)
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + '\n')
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True) + '\n')
 
 
 def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Path,
@@ -229,7 +220,7 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
         if out.exists() and not out.is_dir():
             raise GftOdomError(f'results folder {out} exists and is not a folder')
         out.parent.mkdir(parents=True, exist_ok=True)
-        partial = Path(tempfile.mkdtemp(prefix=f'{out.name}.partial-', dir=out.parent))
+        partial = make_temp_dir(out.parent, prefix=f'{out.name}.partial-')
     except OSError as exc:
         raise GftOdomError(f'cannot create results folder {out}: {exc}') from None
     try:
@@ -248,10 +239,10 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
         write_json(tmp['metrics'], replay.metrics)
         if out.exists():
             for key in names:  # dict order: metrics.json last
-                os.replace(tmp[key], out / names[key])
+                replace(tmp[key], out / names[key])
             partial.rmdir()
         else:
-            os.rename(partial, out)
+            replace(partial, out)
     except OSError as exc:
         shutil.rmtree(partial, ignore_errors=True)
         raise GftOdomError(f'cannot write results to {out}: {exc}') from None

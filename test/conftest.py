@@ -1,4 +1,5 @@
-"""Shared fixtures: DDS isolation for tests that talk ROS between processes."""
+"""Shared fixtures: DDS isolation for tests that talk ROS between processes, a service caller,
+the colcon-built node and a small simulated drive."""
 
 from __future__ import annotations
 
@@ -6,11 +7,14 @@ import os
 import random
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# Plain helper modules beside this file (helpers.py) are importable from every test.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 @pytest.fixture(scope='session')
@@ -58,3 +62,71 @@ def installed_node(tmp_path_factory):
     env['PYTHONPATH'] = os.pathsep.join([str(site), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
     env['AMENT_PREFIX_PATH'] = str(prefix)
     return exe, env
+
+
+@pytest.fixture
+def closed_figures(monkeypatch):
+    """The matplotlib figures the code under test closes, kept open for the test to inspect."""
+    from gft_odom.figures import pyplot
+
+    plt = pyplot()
+    kept, close = [], plt.close
+    monkeypatch.setattr(plt, 'close', lambda fig=None: kept.append(fig))
+    yield kept
+    for fig in kept:
+        close(fig)
+
+
+@pytest.fixture
+def refuses_file(tmp_path):
+    """`refuses_file(read, text, error, match, name)`: `read` of a file holding `text` raises
+    `error` with a message matching `match`."""
+    def check(read, text: str, error: type[Exception], match: str, name: str = 'input.txt'):
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(error, match=match):
+            read(path)
+
+    return check
+
+
+@pytest.fixture
+def ros_node(ros_env):
+    """An rclpy node of this test process in its own context: (node, spin_until)."""
+    import rclpy
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    node = rclpy.create_node('test_client', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+
+    def spin_until(done, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        return bool(done())
+
+    try:
+        yield node, spin_until
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def ros_service_caller(ros_node):
+    """`call(srv_type, service_name, request)`: a ROS service of another process, from here."""
+    node, spin_until = ros_node
+    clients = {}
+
+    def call(srv_type, name: str, request, timeout_s: float = 30.0):
+        if name not in clients:
+            clients[name] = node.create_client(srv_type, name)
+        assert clients[name].wait_for_service(timeout_sec=timeout_s), f'no service {name}'
+        future = clients[name].call_async(request)
+        assert spin_until(future.done, 10.0), f'{name} did not answer'
+        return future.result()
+
+    return call

@@ -35,6 +35,28 @@ def test_every_params_file_loads_with_known_keys_and_types(path):
             assert isinstance(value, float), f'{path.name}: {key} must be written as a float'
 
 
+MODE_OVERLAYS = {
+    'paper_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (3, 4),
+                            'spectral.method': 'signal', 'spectral.graph': 'slice',
+                            'spectral.lanczos_iterations': 30, 'registration.mode': 'paper'},
+    'default_mode_gft.yaml': {'spectral.n_bands': 3, 'spectral.band_mask': (1,)},
+}
+
+
+@pytest.mark.parametrize('name', sorted(MODE_OVERLAYS))
+def test_mode_configs_are_overlays_on_the_defaults(name):
+    path = CONFIG_DIR / name
+    assert len(path.read_text().splitlines()) <= 25
+    overrides = MODE_OVERLAYS[name]
+    assert {k: tuple(v) if isinstance(v, list) else v
+            for k, v in read_params_file(path).items()} == overrides
+    loaded = flatten(load_config(path))
+    defaults = flatten(GftOdomConfig())
+    for key, value in loaded.items():
+        assert value == overrides.get(key, defaults[key]), key
+    assert all(defaults[key] != value for key, value in overrides.items())
+
+
 def test_round_trip_through_a_params_file(tmp_path):
     config = with_values(GftOdomConfig(), {'spectral.tau_m': 0.4, 'spectral.band_mask': [1, 9],
                                            'registration.mode': 'paper'})
@@ -65,14 +87,9 @@ def test_invalid_values_are_refused_with_the_reason(flat, message):
         with_values(GftOdomConfig(), flat)
 
 
-def test_broken_params_files_give_clear_errors(tmp_path):
-    bad_yaml = tmp_path / 'bad.yaml'
-    bad_yaml.write_text('/**: {ros__parameters: [unclosed')
-    with pytest.raises(ConfigError, match='not valid YAML'):
-        load_config(bad_yaml)
-    other_node = tmp_path / 'other.yaml'
-    other_node.write_text('some_node:\n  ros__parameters:\n    a: 1\n')
-    with pytest.raises(ConfigError, match='no "/\\*\\*" or "filter_odom_node" entry'):
-        load_config(other_node)
+def test_broken_params_files_give_clear_errors(tmp_path, refuses_file):
+    refuses_file(load_config, '/**: {ros__parameters: [unclosed', ConfigError, 'not valid YAML')
+    refuses_file(load_config, 'some_node:\n  ros__parameters:\n    a: 1\n', ConfigError,
+                 'no "/\\*\\*" or "filter_odom_node" entry')
     with pytest.raises(ConfigError, match='cannot read'):
         load_config(tmp_path / 'missing.yaml')

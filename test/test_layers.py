@@ -14,7 +14,7 @@ LAYERS = {
     'errors': 0, 'core': 0,
     'io': 1,
     'config': 2, 'params_file': 2, 'sim': 2,
-    'pipeline': 3, 'replay': 3, 'bands': 3, 'figures': 3, 'bench': 3,
+    'pipeline': 3, 'replay': 3, 'bands': 3, 'figures': 3, 'bench': 3, 'tables': 3,
     'tools': 4, 'ros': 4,
 }
 ROS_MODULES = {'rclpy', 'sensor_msgs', 'nav_msgs', 'geometry_msgs', 'std_msgs',

@@ -12,7 +12,7 @@ import numpy as np
 
 from gft_odom.bands.evaluate import BASELINE_KEY, score
 from gft_odom.bands.masks import narrow_interval_membership, parse_mask_key
-from gft_odom.core.spectral.bands import BandMask
+from gft_odom.core.spectral.bands import BandMask, band_of_nu
 
 
 def ranked(rows: Sequence[dict], unique: bool = True) -> list[dict]:
@@ -61,7 +61,7 @@ def interval_counts(rows: Sequence[dict], top_k: int = 20, n_intervals: int = 10
 def correlation_at_nu(table: dict[int, np.ndarray], nu: np.ndarray) -> np.ndarray:
     """Mean over B of the correlation of the band containing each nu (NaNs skipped)."""
     nu = np.asarray(nu, dtype=np.float64)
-    values = [corr[np.minimum(np.floor(nu * n).astype(np.int64), n - 1)]
+    values = [corr[band_of_nu(nu, n) - 1]
               for n, corr in table.items()]
     if not values:
         return np.full(nu.shape, np.nan)
@@ -108,6 +108,7 @@ def _fmt(value) -> str:
 
 
 def best_mask(rows: Sequence[dict]) -> BandMask:
+    """The best-ranked mask of `rows` (ValueError when there is none)."""
     best = ranked(rows)
     if not best:
         raise ValueError('no mask result to choose from')

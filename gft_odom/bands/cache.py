@@ -14,8 +14,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -23,10 +21,12 @@ from typing import Callable, Sequence
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
-from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
+from gft_odom.core.spectral.bands import BandMask
+from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter, keep_mask
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
-from gft_odom.errors import BagError
+from gft_odom.errors import BagError, ConfigError
+from gft_odom.io.atomic import write_atomic
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.pipeline import OdometryPipeline
@@ -62,12 +62,14 @@ class SequenceCache:
 
     @property
     def band_counts(self) -> tuple[int, ...]:
+        """The band counts B with cached frequencies, ascending."""
         return tuple(sorted(self.bands))
 
     def _span(self, i: int) -> slice:
         return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
 
     def scan(self, i: int) -> Scan:
+        """Cropped scan i as the pipeline saw it (stamp, points, per-point times)."""
         s = self._span(i)
         offsets = None if self.time_offset_s is None else self.time_offset_s[s]
         return Scan(int(self.stamps_ns[i]), self.points_xyz[s], time_offset_s=offsets)
@@ -84,16 +86,14 @@ class SequenceCache:
                                 n_slices=int(self.n_slices[i]))
 
     def per_scan(self, array: np.ndarray) -> list[np.ndarray]:
+        """Split a (P,) array over all cached points into one array per scan."""
         return [array[self._span(i)] for i in range(len(self))]
 
-    def base_keep(self, keep_isolated: bool, keep_out_of_range: bool) -> np.ndarray:
-        """(P,) points every mask keeps (band 0 kept by the filter's flags); see `keep_mask`."""
-        keep = np.zeros(self.isolated.shape, dtype=bool)
-        if keep_isolated:
-            keep |= self.isolated
-        if keep_out_of_range:
-            keep |= ~self.in_range
-        return keep & self.finite
+    def keep(self, i: int, mask: BandMask, keep_isolated: bool, keep_out_of_range: bool
+             ) -> np.ndarray:
+        """(n,) points of cropped scan i that `mask` keeps (`keep_mask` on the cached data)."""
+        return keep_mask(self.frequencies(i, mask.n_bands), mask, keep_isolated,
+                         keep_out_of_range)
 
     # -- persistence ---------------------------------------------------------------------------
 
@@ -115,18 +115,11 @@ class SequenceCache:
         meta = {'version': CACHE_VERSION, 'name': self.name, 'key': self.key,
                 'band_counts': list(self.band_counts), 'gps': self.ground_truth_is_gps}
         arrays['meta'] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp.npz', dir=path.parent)
-        os.close(fd)
-        try:
-            np.savez(tmp, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return write_atomic(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> 'SequenceCache':
+        """Read a cache written by `save`."""
         with np.load(path) as data:
             meta = json.loads(bytes(data['meta']).decode())
             counts = meta['band_counts']
@@ -177,6 +170,10 @@ def build_sequence_cache(bags: Sequence[str | Path], gt_path: str | Path,
                          progress: Callable[[int, int], None] | None = None) -> SequenceCache:
     """Read the scans, crop them as the pipeline does, compute bands for every B once."""
     counts = sorted(set(int(n) for n in band_counts))
+    if config.spectral.frequency_source != 'scan':
+        raise ConfigError("the band search caches each scan's own frequencies: it needs "
+                          "spectral.frequency_source 'scan', got "
+                          f'{config.spectral.frequency_source!r}')
     spectral = SpectralFilter.from_config(config.spectral)
     cropper = OdometryPipeline(config, record_trajectory=False)
     ground_truth = read_ground_truth(gt_path)
@@ -191,7 +188,7 @@ def build_sequence_cache(bags: Sequence[str | Path], gt_path: str | Path,
             if i >= total:
                 break
             cropped = cropper._crop(scan)
-            freqs = spectral.frequencies_multi(cropped.points_xyz, counts)
+            freqs = spectral.frequencies_multi(cropped.points_xyz, counts, ring=cropped.ring)
             first = freqs[counts[0]]
             stamps.append(int(scan.stamp_ns))
             points.append(np.asarray(cropped.points_xyz, dtype=np.float64))

@@ -36,11 +36,12 @@ class InProcessExecutor:
         self.config = config
 
     def run(self, keys: Iterable[str]) -> Iterator[dict]:
+        """Evaluate each mask key here, one after the other; rows in key order."""
         for key in keys:
             yield evaluate_key(self.sequences, self.config, key)
 
     def close(self) -> None:
-        pass
+        """Nothing to release."""
 
 
 _WORKER_STATE: dict = {}
@@ -67,6 +68,7 @@ class ProcessPoolMaskExecutor:
                                         initargs=([str(p) for p in cache_paths], config))
 
     def run(self, keys: Iterable[str]) -> Iterator[dict]:
+        """Evaluate the mask keys in the worker processes; rows as they finish."""
         pending = set()
         keys = iter(keys)
         # At most 2 tasks per worker in flight, so an interrupted search wastes little.
@@ -83,6 +85,7 @@ class ProcessPoolMaskExecutor:
                     pending.add(self.pool.submit(_pool_task, nxt))
 
     def close(self) -> None:
+        """Stop the workers, dropping tasks not started."""
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -97,8 +100,8 @@ class RayMaskExecutor:
                  address: str, max_in_flight: int | None = None) -> None:
         try:
             import ray
-        except ImportError:
-            raise ConfigError('--ray-address needs the `ray` package (pip install ray)') from None
+        except ImportError as exc:
+            raise ConfigError('--ray-address needs the `ray` package (pip install ray)') from exc
         self.ray = ray
         self._owns = not ray.is_initialized()
         if self._owns:
@@ -107,7 +110,7 @@ class RayMaskExecutor:
                          logging_level=logging.WARNING)
             except (ConnectionError, ValueError, RuntimeError) as exc:
                 raise GftOdomError(f'cannot connect to the Ray cluster at {address}: {exc}'
-                                   ) from None
+                                   ) from exc
         cpus = int(ray.cluster_resources().get('CPU', 1))
         self.max_in_flight = max_in_flight or max(2, 2 * cpus)
         self.refs = [ray.put(seq) for seq in sequences]
@@ -116,6 +119,7 @@ class RayMaskExecutor:
         log.info('Ray cluster at %s: %d CPUs', address, cpus)
 
     def run(self, keys: Iterable[str]) -> Iterator[dict]:
+        """Evaluate the mask keys as Ray tasks; rows as they finish."""
         ray = self.ray
         keys = iter(keys)
         pending = []
@@ -132,6 +136,7 @@ class RayMaskExecutor:
                     pending.append(self.task.remote(self.config_ref, nxt, *self.refs))
 
     def close(self) -> None:
+        """Disconnect from Ray when this executor started the connection."""
         if self._owns:
             self.ray.shutdown()
 

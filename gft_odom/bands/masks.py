@@ -17,7 +17,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from gft_odom.core.spectral.bands import BandMask, band_edges
+from gft_odom.core.spectral.bands import BandMask, band_edges, band_of_nu
 from gft_odom.errors import ConfigError
 
 
@@ -53,16 +53,10 @@ def exhaustive_masks(min_bands: int, max_bands: int) -> list[BandMask]:
     return masks
 
 
-def keep_fingerprint(band_arrays: Iterable[np.ndarray], base_keep: Iterable[np.ndarray],
-                     mask: BandMask) -> str:
-    """Hash of the points `mask` keeps in every scan (band arrays for B = mask.n_bands).
-
-    `base_keep` are the points kept whatever the mask (band 0 kept by the flags), `False`
-    elsewhere; all arrays are per scan, concatenated order is the caller's."""
-    table = mask.lookup()
+def keep_fingerprint(keeps: Iterable[np.ndarray]) -> str:
+    """Hash of the points a mask keeps, one (n,) bool array per scan (the caller's order)."""
     digest = hashlib.blake2b(digest_size=16)
-    for band, base in zip(band_arrays, base_keep):
-        keep = table[band] | base
+    for keep in keeps:
         digest.update(np.packbits(keep).tobytes())
         digest.update(np.int64(keep.size).tobytes())
     return digest.hexdigest()
@@ -79,8 +73,7 @@ def narrow_interval_membership(masks: Sequence[BandMask], n_intervals: int = 100
     centres = (np.arange(n_intervals) + 0.5) / n_intervals
     counts = np.zeros(n_intervals, dtype=np.int64)
     for mask in masks:
-        band = np.minimum(np.floor(centres * mask.n_bands).astype(np.int64) + 1, mask.n_bands)
-        counts += mask.lookup()[band]
+        counts += mask.lookup()[band_of_nu(centres, mask.n_bands)]
     return counts
 
 

@@ -9,13 +9,13 @@ import numpy as np
 
 from gft_odom.bands.evaluate import score
 from gft_odom.bands.masks import parse_mask_key
-from gft_odom.figures import _pyplot, save_figure
+from gft_odom.figures import pyplot, save_figure
 
 
 def plot_top_masks(path: str | Path, ranked_rows: Sequence[dict], baseline: dict | None,
                    label: str, top_k: int = 10) -> Path:
     """Figure 6: the best masks as bars over the normalised spectrum, one row per mask."""
-    plt = _pyplot()
+    plt = pyplot()
     rows = list(ranked_rows[:top_k])
     fig, ax = plt.subplots(figsize=(8, 0.45 * max(len(rows), 1) + 1.4))
     for i, row in enumerate(rows):
@@ -38,7 +38,7 @@ def plot_top_masks(path: str | Path, ranked_rows: Sequence[dict], baseline: dict
 
 def plot_band_correlation(path: str | Path, table: dict[int, np.ndarray], label: str) -> Path:
     """Figure 7: Pearson r of each band's presence with the error, one group per B."""
-    plt = _pyplot()
+    plt = pyplot()
     counts = sorted(table)
     fig, axes = plt.subplots(1, len(counts), figsize=(2.0 * len(counts) + 1.5, 3.2),
                              sharey=True, squeeze=False)
@@ -51,6 +51,7 @@ def plot_band_correlation(path: str | Path, table: dict[int, np.ndarray], label:
         ax.set_xticks(np.arange(1, n + 1))
         ax.tick_params(labelsize=7)
     axes[0][0].set_ylabel('Pearson r (band present, ATE RMSE)')
+    fig.supxlabel('band b of B (1 = lowest graph frequency nu, B = highest)', fontsize=8)
     axes[0][0].set_ylim(-1.0, 1.0)
     fig.suptitle(f'Band presence vs error (negative: keeping the band lowers the error), '
                  f'{label}', fontsize=9)
@@ -59,7 +60,7 @@ def plot_band_correlation(path: str | Path, table: dict[int, np.ndarray], label:
 
 def plot_interval_counts(path: str | Path, counts: np.ndarray, top_k: int, label: str) -> Path:
     """Figure 8: how often each narrow nu interval lies in the best masks."""
-    plt = _pyplot()
+    plt = pyplot()
     n = counts.size
     fig, ax = plt.subplots(figsize=(8, 3))
     ax.fill_between((np.arange(n) + 0.5) / n, counts, step='mid', color='#55c49a')

@@ -11,7 +11,6 @@ Output folder:
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
@@ -168,7 +167,3 @@ def summary_markdown(summary: dict) -> str:
               '- no test bags given: there is no held-out number; the in-sample error is '
               'optimistic.', '']
     return '\n'.join(lines)
-
-
-def dump(summary: dict) -> str:
-    return json.dumps(_json_safe(summary), indent=2, sort_keys=True)

@@ -8,7 +8,6 @@ of another configuration are never mixed in.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import logging
@@ -55,6 +54,7 @@ class BandSearchConfig:
     n_intervals: int = 1000
 
     def validate(self) -> None:
+        """Raise ConfigError naming the first setting that cannot work."""
         if not 1 <= self.min_bands <= self.max_bands:
             raise ConfigError(f'need 1 <= min_bands <= max_bands, got min_bands = '
                               f'{self.min_bands}, max_bands = {self.max_bands}')
@@ -83,6 +83,7 @@ class SequenceSpec:
 
     @property
     def label(self) -> str:
+        """The name given, else the first bag's file name."""
         return self.name or Path(self.bags[0]).name
 
 
@@ -107,12 +108,12 @@ class ResultsLog:
         for n, line in enumerate(lines):
             try:
                 row = json.loads(line)
-            except json.JSONDecodeError:
+            except json.JSONDecodeError as exc:
                 if n == len(lines) - 1:
                     log.warning('%s: last line is incomplete (search killed mid-write); '
                                 'that mask will be evaluated again', self.path)
                     break
-                raise ConfigError(f'{self.path}: line {n + 1} is not JSON') from None
+                raise ConfigError(f'{self.path}: line {n + 1} is not JSON') from exc
             self.rows[row['key']] = row
             good += 1
         # Drop a torn tail so the next append starts on a fresh line.
@@ -124,6 +125,7 @@ class ResultsLog:
         return key in self.rows
 
     def append(self, row: dict) -> None:
+        """Add one result row to the log, flushed to disk at once (a kill keeps it)."""
         with self.path.open('a') as f:
             f.write(json.dumps(row, sort_keys=True, default=_json_default) + '\n')
             f.flush()
@@ -166,9 +168,6 @@ class BandSearch:
         self.ray_address = ray_address
         self._check_meta()
         self.log = ResultsLog(self.out / 'results.jsonl')
-        self._base = [seq.per_scan(seq.base_keep(config.spectral.keep_isolated,
-                                                 config.spectral.keep_out_of_range))
-                      for seq in self.train]
         self._fingerprints: dict[str, str] = {}
         self._by_fingerprint: dict[str, str] = {
             r['fingerprint']: k for k, r in self.log.rows.items()
@@ -191,11 +190,12 @@ class BandSearch:
             meta_path.write_text(json.dumps(meta, indent=2) + '\n')
 
     def fingerprint(self, mask: BandMask) -> str:
+        """Hash of the points `mask` keeps in every training scan (equal: same result)."""
         key = mask_key(mask)
         if key not in self._fingerprints:
-            bands = [b for seq in self.train for b in seq.per_scan(seq.bands[mask.n_bands])]
-            base = [b for per_seq in self._base for b in per_seq]
-            self._fingerprints[key] = keep_fingerprint(bands, base, mask)
+            flags = (self.config.spectral.keep_isolated, self.config.spectral.keep_out_of_range)
+            self._fingerprints[key] = keep_fingerprint(
+                seq.keep(i, mask, *flags) for seq in self.train for i in range(len(seq)))
         return self._fingerprints[key]
 
     def evaluate(self, masks: Sequence[BandMask | None],
@@ -253,6 +253,7 @@ class BandSearch:
         return self._executor
 
     def close(self) -> None:
+        """Release the executor (worker processes, Ray connection)."""
         if self._executor is not None:
             self._executor.close()
             self._executor = None
@@ -379,8 +380,5 @@ def _brief(row: dict) -> dict:
 
 
 def band_counts_for(cfg: BandSearchConfig) -> list[int]:
+    """The band counts B the search covers: min_bands..max_bands."""
     return list(range(cfg.min_bands, cfg.max_bands + 1))
-
-
-def asdict(cfg: BandSearchConfig) -> dict:
-    return dataclasses.asdict(cfg)

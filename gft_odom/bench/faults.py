@@ -19,12 +19,12 @@ from typing import Callable
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
+from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
 from gft_odom.core.metrics import umeyama_alignment
 from gft_odom.core.types import Scan
 from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
 from gft_odom.pipeline import FrameResult, OdometryPipeline
 
-NS_PER_S = 1_000_000_000
 COPY_DELAY_NS = 30_000_000  # an impossible copy arrives this long after the valid scan
 HOUR_NS = 3600 * NS_PER_S
 COPY_EVERY = 7  # scans between two faulty copies
@@ -96,7 +96,7 @@ def with_time_unit(scan: Scan, unit: str) -> Scan:
               'ns': np.round(offsets_s * 1e9).astype(np.uint32)}[unit]
     xyz = scan.points_xyz.astype(np.float32)
     blob = encode_cloud({'x': xyz[:, 0], 'y': xyz[:, 1], 'z': xyz[:, 2], 'time': values})
-    sec, nanosec = divmod(int(scan.stamp_ns), NS_PER_S)
+    sec, nanosec = ns_to_sec_nanosec(scan.stamp_ns)
     msg = SimpleNamespace(
         header=SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=nanosec),
                                frame_id=scan.frame_id),

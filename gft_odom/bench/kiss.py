@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gft_odom.config import PipelineConfig
+from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
 
@@ -25,7 +27,7 @@ class KissIcpConfig:
     # VLP-16 rated range (kiss-icp's own default, too).
     max_range_m: float = 100.0
     # Same crop as our pipeline: the Jackal's body and a walking operator.
-    min_range_m: float = 0.5
+    min_range_m: float = PipelineConfig.min_range_m
     # kiss-icp's rule is max_range / 100 (1.0 m at 100 m); the bench's tuning seeds decide.
     voxel_size_m: float = 1.0
     max_points_per_voxel: int = 20
@@ -103,6 +105,7 @@ class KissIcpOdometry:
         self.odometry = KissICP(kiss_config)
 
     def register_frame(self, scan: Scan) -> KissFrame:
+        """Register one scan with kiss-icp; its pose is stamped at the sweep end."""
         points = np.ascontiguousarray(scan.points_xyz, dtype=np.float64)
         times = scan.time_offset_s
         use_times = (self.config.deskew and times is not None and len(times)
@@ -110,7 +113,7 @@ class KissIcpOdometry:
         timestamps = np.asarray(times, dtype=np.float64) if use_times else np.zeros(0)
         frame, _ = self.odometry.register_frame(points, timestamps)
         # Deskewed to the latest point of the sweep: that is when this pose holds.
-        end_offset_ns = int(round(float(np.max(times)) * 1e9)) if use_times else 0
+        end_offset_ns = int(round(float(np.max(times)) * NS_PER_S)) if use_times else 0
         return KissFrame(stamp_ns=int(scan.stamp_ns) + end_offset_ns,
                          T_world_sensor=np.array(self.odometry.last_pose, dtype=float),
                          n_points_kept=int(len(frame)))

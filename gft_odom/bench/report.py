@@ -6,28 +6,22 @@ import json
 import math
 import os
 import platform
-import tempfile
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from gft_odom.bench.runner import METHODS, BenchRun
 from gft_odom.core.metrics import ate
 from gft_odom.errors import GftOdomError
+from gft_odom.io.atomic import write_text_atomic
 from gft_odom.replay import estimate_for_ground_truth
+from gft_odom.tables import cell, columns, markdown_table
 
 # Per-method summary columns: (title, key, format).
-SUMMARY_COLUMNS = (
-    ('ATE RMSE [m]', 'ate_rmse_m', '{:.3f}'),
-    ('ATE mean [m]', 'ate_mean_m', '{:.3f}'),
-    ('RPE drift [%]', 'rpe_drift_pct', '{:.2f}'),
-    ('paper MSE [m^2]', 'paper_mse_m2', '{:.4f}'),
-    ('latency median [ms]', 'latency_median_ms', '{:.1f}'),
-    ('latency p95 [ms]', 'latency_p95_ms', '{:.1f}'),
-    ('points kept', 'points_kept_mean', '{:.0f}'),
-    ('kept [%]', 'points_kept_pct', '{:.1f}'),
-    ('fallbacks', 'fallbacks', '{:d}'),
-)
+SUMMARY_COLUMNS = columns('ate_rmse_m', 'ate_mean_m', 'rpe_drift_pct', 'paper_mse_m2',
+                          'latency_median_ms', 'latency_p95_ms', 'points_kept_mean',
+                          'points_kept_pct', 'fallbacks')
 # Accuracy figures averaged over sequences (each sequence counts once).
 MEAN_KEYS = ('ate_rmse_m', 'ate_mean_m', 'rpe_drift_pct', 'paper_mse_m2', 'points_kept_mean')
 LATENCY_TARGET_P95_MS = 50.0
@@ -113,6 +107,7 @@ def _f(value) -> str:
 
 
 def machine_info() -> dict:
+    """Python version, CPU type and count, and the load average now."""
     load = os.getloadavg()[0] if hasattr(os, 'getloadavg') else None
     return {'python': platform.python_version(), 'machine': platform.machine(),
             'cpu_count': os.cpu_count(), 'load_avg_1min_at_end': load}
@@ -133,18 +128,8 @@ def bench_to_dict(bench: BenchRun, settings: dict) -> dict:
     }
 
 
-def write_text_atomic(path: Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-    with os.fdopen(fd, 'w') as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)  # mkstemp makes it private; results are for everyone to read
-    os.replace(tmp, path)
-    return path
-
-
 def write_json(path: Path, document: dict) -> Path:
+    """Write the bench document as indented JSON, atomically."""
     return write_text_atomic(path, json.dumps(document, indent=2, sort_keys=False,
                                               default=_json_default) + '\n')
 
@@ -161,20 +146,9 @@ def _json_default(value):
     raise TypeError(f'not JSON serialisable: {type(value).__name__}')
 
 
-def _cell(value, fmt: str) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return 'n/a'
-    return fmt.format(value)
-
-
 def summary_table(summary: dict[str, dict]) -> str:
     """Markdown: one row per method."""
-    lines = ['| method | ' + ' | '.join(t for t, _, _ in SUMMARY_COLUMNS) + ' |',
-             '|---|' + '---:|' * len(SUMMARY_COLUMNS)]
-    for method, row in summary.items():
-        cells = [_cell(row.get(key), fmt) for _, key, fmt in SUMMARY_COLUMNS]
-        lines.append(f'| {method} | ' + ' | '.join(cells) + ' |')
-    return '\n'.join(lines)
+    return markdown_table(summary.items(), SUMMARY_COLUMNS, 'method', align_right=True)
 
 
 def per_sequence_table(document: dict) -> str:
@@ -184,7 +158,7 @@ def per_sequence_table(document: dict) -> str:
     lat = {(r['sequence'], r['method']): r.get('latency_median_ms') for r in document['runs']}
     lines = ['| sequence | ' + ' | '.join(methods) + ' |', '|---|' + '---:|' * len(methods)]
     for seq in document['sequences']:
-        cells = [f'{_cell(ate.get((seq, m)), "{:.3f}")} ({_cell(lat.get((seq, m)), "{:.0f}")})'
+        cells = [f'{cell(ate.get((seq, m)), "{:.3f}")} ({cell(lat.get((seq, m)), "{:.0f}")})'
                  for m in methods]
         lines.append(f'| {seq} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
@@ -222,7 +196,7 @@ def markdown_page(document: dict, figures: dict[str, str], notes: str = '') -> s
         "to after the method's per-scan call returns; the same reader and loop for all "
         'methods, methods interleaved per sequence so load changes hit all alike. '
         f'Machine: {m["cpu_count"]} cores shared with other jobs (1-min load '
-        f'{_cell(m["load_avg_1min_at_end"], "{:.1f}")} at the end), Python {m["python"]}.',
+        f'{cell(m["load_avg_1min_at_end"], "{:.1f}")} at the end), Python {m["python"]}.',
         '- Accuracy: `gft_odom.replay.summarize` (the code behind `gft-odom replay`): ATE with '
         f'`{s["evaluation"]}` alignment against the GPS antenna track (`gt.csv`, the estimate '
         'moved to the antenna by the LiDAR->GPS lever arm), RPE drift in % of distance, and '
@@ -262,37 +236,65 @@ def markdown_page(document: dict, figures: dict[str, str], notes: str = '') -> s
     return '\n'.join(lines).rstrip() + '\n'
 
 
+def _method_colours(methods: Sequence[str]) -> dict[str, str]:
+    """One colour per method, the same in every figure and panel."""
+    palette = ('tab:blue', 'tab:orange', 'tab:green', 'tab:red', 'tab:purple', 'tab:brown',
+               'tab:pink', 'tab:olive', 'tab:cyan')
+    return {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+
+
+def _plain_log_ticks(ax, lo: float, hi: float) -> None:
+    """Log y axis labelled in plain numbers (5, 10, 20, 50, 100 ms), not 10^1 / 10^2."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator
+
+    decades = np.arange(np.floor(np.log10(max(lo, 1e-9))), np.ceil(np.log10(hi)) + 1)
+    ticks = [m * 10.0 ** d for d in decades for m in (1, 2, 5)]
+    ticks = [t for t in ticks if lo / 1.5 <= t <= hi * 1.5]
+    ax.yaxis.set_major_locator(FixedLocator(ticks))
+    ax.yaxis.set_major_formatter(lambda value, _pos: f'{value:g}')
+    ax.yaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
 def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
                  prefix: str = 'bench_') -> dict[str, Path]:
     """ATE per scenario, latency distribution, trajectories of one sequence."""
-    import matplotlib
+    from gft_odom.figures import pyplot
 
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     methods = list(document['summary'])
+    colours = _method_colours(methods)
     scenarios = list(dict.fromkeys(s.scenario for s in bench.sequences))
     paths: dict[str, Path] = {}
 
-    # 1. ATE RMSE per scenario (mean over seeds) and method.
-    fig, ax = plt.subplots(figsize=(9, 4.2))
+    # 1. ATE RMSE per scenario and method: mean over seeds, whiskers min..max over seeds.
+    fig, ax = plt.subplots(figsize=(10, 4.2))
     width = 0.8 / max(len(methods), 1)
     for i, method in enumerate(methods):
-        means = []
+        means, spans = [], []
         for scenario in scenarios:
-            vals = [r.metrics.get('ate_rmse_m') for r in bench.runs
-                    if r.method == method and r.sequence.scenario == scenario]
-            means.append(_mean(vals) or np.nan)
-        ax.bar(np.arange(len(scenarios)) + (i - (len(methods) - 1) / 2) * width, means, width,
-               label=method)
+            vals = [v for v in (r.metrics.get('ate_rmse_m') for r in bench.runs
+                                if r.method == method and r.sequence.scenario == scenario)
+                    if v is not None and math.isfinite(v)]
+            mean = _mean(vals) if vals else None
+            means.append(np.nan if mean is None else mean)
+            spans.append((mean - min(vals), max(vals) - mean) if vals else (np.nan, np.nan))
+        x = np.arange(len(scenarios)) + (i - (len(methods) - 1) / 2) * width
+        ax.bar(x, means, width, label=method, color=colours[method],
+               yerr=np.array(spans).T, capsize=2, error_kw={'elinewidth': 0.8})
     ax.set_xticks(np.arange(len(scenarios)), scenarios)
     ax.set_yscale('log')
+    all_ate = [v for v in (r.metrics.get('ate_rmse_m') for r in bench.runs)
+               if v is not None and math.isfinite(v) and v > 0.0]
+    if all_ate:
+        _plain_log_ticks(ax, min(all_ate), max(all_ate))
     ax.set_ylabel('ATE RMSE [m] (log)')
-    ax.set_title('ATE RMSE per scenario, mean over seeds (synthetic orchard)')
-    ax.legend(fontsize=8, ncol=len(methods))
+    ax.set_title('ATE RMSE per scenario: bars mean over seeds, whiskers min..max over seeds '
+                 '(synthetic orchard)', fontsize=9)
+    ax.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     ax.grid(axis='y', alpha=0.3, which='both')
     fig.tight_layout()
     paths['ATE per scenario'] = out_dir / f'{prefix}ate.png'
@@ -308,6 +310,10 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
     ax.axhline(LATENCY_TARGET_P95_MS, color='red', ls='--', lw=1, label='50 ms')
     ax.axhline(100.0, color='grey', ls=':', lw=1, label='100 ms (10 Hz real time)')
     ax.set_yscale('log')
+    pooled = np.concatenate([d for d in data if d.size]) if any(d.size for d in data) else None
+    if pooled is not None:
+        lo = min(float(np.percentile(pooled, 1)), LATENCY_TARGET_P95_MS)
+        _plain_log_ticks(ax, max(lo, 1e-3), max(float(np.percentile(pooled, 99)), 100.0))
     ax.set_ylabel('per-scan latency [ms] (log); whiskers 5-95 %')
     ax.set_title('Per-scan latency (decode + per-scan call), all sequences pooled')
     ax.legend(fontsize=8)
@@ -318,13 +324,14 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
     plt.close(fig)
 
     # 3. Trajectories of the first sequence of each scenario, GPS antenna frame, aligned as
-    #    the ATE aligns them (same `ate` code as the metrics).
+    #    the ATE aligns them (same `ate` code as the metrics); the view is the ground truth
+    #    plus a margin (a diverging run must not shrink the others), the best run drawn last.
     ev = document['settings']['evaluation_config']
-    fig, axes = plt.subplots(1, len(scenarios), figsize=(4.5 * len(scenarios), 4.5),
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(4.5 * len(scenarios), 4.8),
                              squeeze=False)
     for ax, scenario in zip(axes[0], scenarios):
         seq = next(s for s in bench.sequences if s.scenario == scenario)
-        ref = None
+        ref, curves = None, []
         for r in bench.runs:
             if r.sequence is not seq:
                 continue
@@ -336,20 +343,34 @@ def plot_figures(bench: BenchRun, document: dict, out_dir: Path,
             except GftOdomError:  # a plot must not end a finished benchmark
                 continue
             aligned = est.positions_xyz @ res.T_ref_est[:3, :3].T + res.T_ref_est[:3, 3]
-            ax.plot(aligned[:, 0], aligned[:, 1], lw=1, label=r.method)
+            curves.append((r.metrics.get('ate_rmse_m'), r.method, aligned))
         if ref is not None:
-            ax.plot(ref.positions_xyz[:, 0], ref.positions_xyz[:, 1], 'k--', lw=1.2,
-                    label='ground truth (GPS)')
-        ax.set_aspect('equal', adjustable='datalim')
+            gt = ref.positions_xyz[:, :2]
+            margin = max(2.0, 0.15 * float(np.ptp(gt, axis=0).max()))
+            lo, hi = gt.min(axis=0) - margin, gt.max(axis=0) + margin
+            ax.plot(gt[:, 0], gt[:, 1], 'k--', lw=0.9, label='ground truth (GPS)', zorder=4)
+        # Worst first, best last (on top).
+        curves.sort(key=lambda c: -(c[0] if c[0] is not None else np.inf))
+        for k, (ate_m, method, xy) in enumerate(curves):
+            best = k == len(curves) - 1
+            label = method if ate_m is None else f'{method} ({ate_m:.2f} m)'
+            if ref is not None and not ((xy[:, :2] >= lo) & (xy[:, :2] <= hi)).all():
+                label += ', leaves the view'
+            ax.plot(xy[:, 0], xy[:, 1], lw=1.8 if best else 1.0, color=colours[method],
+                    label=label, zorder=3 if best else 2)
+        if ref is not None:
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect('equal', adjustable='box')
         ax.set_title(seq.name, fontsize=9)
         ax.set_xlabel('x [m]')
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc='best', title='method (ATE RMSE)', title_fontsize=6)
     axes[0][0].set_ylabel('y [m]')
-    axes[0][0].legend(fontsize=7)
-    fig.suptitle('Trajectories after position alignment (GPS antenna)', fontsize=10)
+    fig.suptitle('Trajectories after position alignment (GPS antenna)\nview: the ground truth '
+                 'plus a margin; best run on top', fontsize=10)
     fig.tight_layout()
     paths['trajectories'] = out_dir / f'{prefix}trajectories.png'
     fig.savefig(paths['trajectories'], dpi=100)
     plt.close(fig)
     return paths
-

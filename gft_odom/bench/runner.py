@@ -22,7 +22,7 @@ import numpy as np
 
 from gft_odom.bench.kiss import KissIcpConfig, KissIcpOdometry
 from gft_odom.config import GftOdomConfig, with_values
-from gft_odom.core.geometry import invert_transform
+from gft_odom.core.geometry import sensor_to_base_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import ConfigError
 from gft_odom.io.bags import ScanBagReader
@@ -155,8 +155,7 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
         skipped = reader.skipped
     sensor = Trajectory(np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4))
     T_base_sensor = base_to_sensor(config)
-    base = Trajectory(sensor.stamps_ns,
-                      T_base_sensor @ sensor.poses @ invert_transform(T_base_sensor))
+    base = Trajectory(sensor.stamps_ns, sensor_to_base_poses(sensor.poses, T_base_sensor))
     replay = ReplayResult(
         sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
         stage_s={}, points_in=np.asarray(points_in), points_kept=np.asarray(points_kept),

@@ -56,3 +56,17 @@ def xyz_quat_from_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def rpy_transform(xyz=(0.0, 0.0, 0.0), rpy_rad=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Transform from a translation and roll/pitch/yaw (REP 103 fixed-axis x-y-z)."""
     return make_transform(Rotation.from_euler('xyz', rpy_rad).as_matrix(), np.asarray(xyz))
+
+
+def sensor_to_base_poses(T_world_sensor: np.ndarray, T_base_sensor: np.ndarray) -> np.ndarray:
+    """Sensor poses (world = first sensor frame) as base poses (odom = first base frame).
+
+    T_odom_base = T_base_sensor @ T_world_sensor @ T_sensor_base, for one (4, 4) pose or a
+    stack (N, 4, 4).
+    """
+    return T_base_sensor @ T_world_sensor @ invert_transform(T_base_sensor)
+
+
+def base_to_sensor_poses(T_odom_base: np.ndarray, T_base_sensor: np.ndarray) -> np.ndarray:
+    """The inverse of `sensor_to_base_poses`: T_sensor_base @ T_odom_base @ T_base_sensor."""
+    return invert_transform(T_base_sensor) @ T_odom_base @ T_base_sensor

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, SCAN_PERIOD_S
 from gft_odom.core.geometry import invert_transform
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import ConfigError, GroundTruthError
@@ -28,7 +29,7 @@ ATE_MODES = ('se3', 'sim3', 'position')
 MATCH_METHODS = ('nearest', 'interpolate')
 DEFAULT_LENGTHS_M = (5.0, 10.0, 20.0, 50.0)
 DEFAULT_MODE = 'position'
-DEFAULT_MAX_DIFF_S = 0.05
+DEFAULT_MAX_DIFF_S = SCAN_PERIOD_S / 2
 DEFAULT_MATCH = 'nearest'
 DEFAULT_MAX_GAP_S = 1.0
 
@@ -55,6 +56,7 @@ class MetricsConfig:
     lengths_m: tuple[float, ...] = DEFAULT_LENGTHS_M
 
     def validate(self) -> None:
+        """Raise ConfigError naming the first value that cannot work."""
         _check_args(self.mode, self.max_diff_s, self.match, self.max_gap_s, self.lengths_m)
 
 
@@ -105,7 +107,7 @@ def associate(est: Trajectory, ref: Trajectory,
     empty = np.zeros(0, dtype=np.int64)
     if len(est) == 0 or len(ref) == 0:
         return empty, empty.copy()
-    max_diff_ns = int(round(max_diff_s * 1e9))
+    max_diff_ns = int(round(max_diff_s * NS_PER_S))
     s_est, s_ref = est.stamps_ns, ref.stamps_ns
     upper = np.searchsorted(s_ref, s_est, side='left')
     right = np.minimum(upper, len(ref) - 1)
@@ -478,6 +480,7 @@ class TrajectoryEvaluator:
 
     @classmethod
     def from_config(cls, cfg: MetricsConfig) -> 'TrajectoryEvaluator':
+        """An evaluator with the settings of `cfg` (validated)."""
         cfg.validate()
         return cls(cfg.mode, cfg.max_diff_s, cfg.lengths_m, cfg.match, cfg.max_gap_s)
 
@@ -503,6 +506,7 @@ class TrajectoryEvaluator:
             rpe_count_per_length=tuple(drift['count_per_length']))
 
     def evaluate(self, est: Trajectory, ref: Trajectory) -> dict:
+        """The metrics of `est` against `ref` as a JSON-ready dict."""
         return self.metrics(est, ref).as_dict()
 
 

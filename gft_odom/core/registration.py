@@ -38,6 +38,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from gft_odom.core.constants import SCAN_PERIOD_S
 from gft_odom.core.deskew import azimuth_time_offsets, deskew_points, planar_delta
 from gft_odom.core.geometry import invert_transform, make_transform, transform_points
 from gft_odom.core.local_map import LocalMap, to_cloud, voxel_downsample_indices
@@ -129,7 +130,7 @@ class RegistrationConfig:
     deskew_planar: bool = True
     # Deskew velocity = mean twist of the last this many trusted scans (ICP noise averages out).
     deskew_velocity_window: int = 5
-    scan_period_s: float = 0.1
+    scan_period_s: float = SCAN_PERIOD_S
     # Azimuth-derived times only: ROS velodyne drivers stamp with the last packet by default
     # (timestamp_first_packet: false); set true when the bag's header.stamp is the sweep end.
     azimuth_stamp_at_sweep_end: bool = False

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S
+from gft_odom.errors import GroundTruthError
+
 
 @dataclass
 class Trajectory:
@@ -25,10 +28,12 @@ class Trajectory:
 
     @property
     def positions_xyz(self) -> np.ndarray:
+        """(N, 3) positions of the body in the world frame."""
         return self.poses[:, :3, 3]
 
     @property
     def stamps_s(self) -> np.ndarray:
+        """(N,) stamps in float seconds (for plots and evo; ns stay exact)."""
         return self.stamps_ns.astype(np.float64) * 1e-9
 
     def path_length_m(self) -> float:
@@ -44,3 +49,28 @@ class Trajectory:
     def with_body_offset(self, T_body_other: np.ndarray) -> 'Trajectory':
         """Poses of a frame rigidly attached to the body: T_world_other = T_world_body T_b_o."""
         return Trajectory(self.stamps_ns.copy(), self.poses @ T_body_other)
+
+    def pose_at(self, stamp_ns: int, max_extrapolation_s: float = 0.1) -> np.ndarray:
+        """T_world_body at `stamp_ns`: linear in position, slerp in rotation.
+
+        A stamp up to `max_extrapolation_s` outside the trajectory's span gets the end pose;
+        further out raises GroundTruthError.
+        """
+        from scipy.spatial.transform import Rotation, Slerp
+
+        stamps_ns, poses = self.stamps_ns, self.poses
+        margin_ns = max_extrapolation_s * NS_PER_S
+        if not stamps_ns[0] - margin_ns <= stamp_ns <= stamps_ns[-1] + margin_ns:
+            raise GroundTruthError(
+                f'scan stamp {stamp_ns * 1e-9:.3f} s is outside the ground truth '
+                f'({stamps_ns[0] * 1e-9:.3f} .. {stamps_ns[-1] * 1e-9:.3f} s)')
+        if len(stamps_ns) == 1:
+            return poses[0]
+        k = int(np.clip(np.searchsorted(stamps_ns, stamp_ns) - 1, 0, len(stamps_ns) - 2))
+        t0, t1 = int(stamps_ns[k]), int(stamps_ns[k + 1])
+        a = float(np.clip((stamp_ns - t0) / max(t1 - t0, 1), 0.0, 1.0))
+        T = np.eye(4)
+        T[:3, 3] = (1.0 - a) * poses[k, :3, 3] + a * poses[k + 1, :3, 3]
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(poses[k:k + 2, :3, :3]))
+        T[:3, :3] = slerp([a]).as_matrix()[0]
+        return T

@@ -7,13 +7,13 @@ import logging
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.geometry import poses_from_xyz_quat
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import GroundTruthError
 
 log = logging.getLogger(__name__)
 
-NS_PER_S = 1_000_000_000
 # Up to this share of stamps may step back in time (recording glitches): they are sorted with
 # a warning. More than that means the file is not a time series and is rejected.
 MAX_UNORDERED_FRACTION = 0.01

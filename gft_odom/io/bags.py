@@ -15,12 +15,13 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
 from gft_odom.core.geometry import xyz_quat_from_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import BagError, GftOdomError
 from gft_odom.io._poses import trajectory_from_columns
-from gft_odom.io.pointcloud2 import NS_PER_S, CloudBlob, decode_scan, stamp_ns_of
+from gft_odom.io.pointcloud2 import CloudBlob, decode_scan, stamp_ns_of
 
 log = logging.getLogger(__name__)
 
@@ -28,8 +29,35 @@ POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 ROS2_SUFFIXES = ('.db3', '.mcap')
 ROS1_MAGIC = b'#ROSBAG V2.0\n'
+# Beyond CodecError, what decoding a hostile message can raise: numpy's size and shape
+# errors on a field table that lies about the data.
+DECODE_ERRORS = (ValueError, TypeError, IndexError, OverflowError, MemoryError)
 
 PathLike = str | Path
+
+
+def rosbags_errors() -> tuple[type[Exception], ...]:
+    """What reading, decoding or writing a bag through rosbags can raise on bad data or I/O.
+
+    rosbags' own errors, and what its parsers let through on a damaged file: struct, sqlite3
+    and apsw (its sqlite3 storage), bz2 (OSError/ValueError) and lz4 (RuntimeError) errors, bad
+    offsets and missing keys.
+    """
+    import sqlite3
+    import struct
+
+    import apsw
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag1 import ReaderError as Ros1ReaderError
+    from rosbags.rosbag1 import WriterError as Ros1WriterError
+    from rosbags.rosbag2 import ReaderError as Ros2ReaderError
+    from rosbags.rosbag2 import WriterError as Ros2WriterError
+    from rosbags.serde import SerdeError
+    from rosbags.typesys import TypesysError
+
+    return (AnyReaderError, Ros1ReaderError, Ros1WriterError, Ros2ReaderError, Ros2WriterError,
+            SerdeError, TypesysError, sqlite3.Error, apsw.Error, struct.error, OSError, EOFError,
+            ValueError, KeyError, IndexError, TypeError, AttributeError, RuntimeError)
 
 
 def _as_path_list(paths: PathLike | Sequence[PathLike]) -> list[Path]:
@@ -49,7 +77,7 @@ def _check_ros1_magic(path: Path) -> None:
         with path.open('rb') as f:
             magic = f.read(len(ROS1_MAGIC))
     except OSError as exc:
-        raise BagError(f'cannot read bag {path}: {exc}') from None
+        raise BagError(f'cannot read bag {path}: {exc}') from exc
     if magic != ROS1_MAGIC:
         raise BagError(f'{path} is not a ROS 1 bag (it does not start with {ROS1_MAGIC!r})')
 
@@ -108,8 +136,8 @@ class _BagSource:
         try:
             self.reader = AnyReader(self.paths, default_typestore=get_typestore(store))
             self.reader.open()
-        except Exception as exc:  # rosbags raises many types for a damaged file
-            raise BagError(f'cannot open bag {self.where}: not a readable bag ({exc})') from None
+        except rosbags_errors() as exc:  # many types for a damaged file
+            raise BagError(f'cannot open bag {self.where}: not a readable bag ({exc})') from exc
 
     def close(self) -> None:
         if self.reader is not None and self.reader.stack is not None:
@@ -141,9 +169,9 @@ class _BagSource:
                 item = next(messages)
             except StopIteration:
                 return
-            except Exception as exc:
+            except rosbags_errors() as exc:
                 raise BagError(f'bag {self.where} is damaged, reading {topic} stopped: '
-                               f'{exc!r}') from None
+                               f'{exc!r}') from exc
             yield item
 
 
@@ -167,6 +195,7 @@ class ScanBagReader:
 
     @property
     def paths(self) -> list[Path]:
+        """The bag files or folders, in the order they are read."""
         return list(self._source.paths)
 
     def __enter__(self) -> 'ScanBagReader':
@@ -176,6 +205,7 @@ class ScanBagReader:
         self.close()
 
     def close(self) -> None:
+        """Close the bag files."""
         self._source.close()
 
     def __len__(self) -> int:
@@ -192,7 +222,7 @@ class ScanBagReader:
         for connection, log_time_ns, raw in self._source.raw(self._connections):
             try:
                 msg = self._source.reader.deserialize(raw, connection.msgtype)
-            except Exception as exc:
+            except rosbags_errors() as exc:
                 self._skip(log_time_ns, f'cannot deserialize: {exc}')
                 continue
             yield log_time_ns, msg
@@ -204,7 +234,7 @@ class ScanBagReader:
             except GftOdomError as exc:
                 self._skip(log_time_ns, str(exc))
                 continue
-            except Exception as exc:  # a hostile message must not end a long replay
+            except DECODE_ERRORS as exc:  # a hostile message must not end a replay
                 self._skip(log_time_ns, repr(exc))
                 continue
             yield scan
@@ -230,9 +260,9 @@ def read_odometry(paths: PathLike | Sequence[PathLike],
             try:
                 msg = source.reader.deserialize(raw, connection.msgtype)
                 stamp_ns = stamp_ns_of(msg.header)
-            except Exception as exc:
+            except rosbags_errors() as exc:
                 raise BagError(f'bad Odometry message on {topic} in {source.where}: '
-                               f'{exc}') from None
+                               f'{exc}') from exc
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
             stamps.append(stamp_ns)
             values.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
@@ -272,6 +302,7 @@ class BagWriter:
         self.counts: dict[str, int] = {}
 
     def open(self) -> 'BagWriter':
+        """Create the bag (BagError when it cannot be created)."""
         try:
             if self.fmt == 'ros1':
                 from rosbags.rosbag1 import Writer as Writer1
@@ -283,9 +314,9 @@ class BagWriter:
                           else StoragePlugin.SQLITE3)
                 self._writer = Writer2(self.path, version=9, storage_plugin=plugin)
             self._writer.open()
-        except Exception as exc:
+        except rosbags_errors() as exc:
             self._writer = None
-            raise BagError(f'cannot create bag {self.path}: {exc}') from None
+            raise BagError(f'cannot create bag {self.path}: {exc}') from exc
         return self
 
     def close(self) -> None:
@@ -294,8 +325,8 @@ class BagWriter:
         if writer is not None:
             try:
                 writer.close()
-            except Exception as exc:
-                raise BagError(f'cannot finish bag {self.path}: {exc}') from None
+            except rosbags_errors() as exc:
+                raise BagError(f'cannot finish bag {self.path}: {exc}') from exc
 
     def __enter__(self) -> 'BagWriter':
         return self.open() if self._writer is None else self
@@ -311,7 +342,7 @@ class BagWriter:
         stamp_ns = int(stamp_ns)
         if stamp_ns < 0:
             raise BagError(f'negative stamp {stamp_ns} ns on {topic} (writing {self.path})')
-        sec, nanosec = divmod(stamp_ns, NS_PER_S)
+        sec, nanosec = ns_to_sec_nanosec(stamp_ns)
         stamp = types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
         if self.fmt == 'ros1':
             seq = self._seq.get(topic, 0)
@@ -328,9 +359,9 @@ class BagWriter:
             try:
                 connection = self._writer.add_connection(topic, msgtype,
                                                          typestore=self.typestore)
-            except Exception as exc:
+            except rosbags_errors() as exc:
                 raise BagError(f'cannot add topic {topic} ({msgtype}) to {self.path}: '
-                               f'{exc}') from None
+                               f'{exc}') from exc
             known = self._connections[topic] = (connection, msgtype)
         connection, topic_type = known
         if topic_type != msgtype:
@@ -342,8 +373,8 @@ class BagWriter:
             else:
                 raw = self.typestore.serialize_cdr(msg, msgtype)
             self._writer.write(connection, int(stamp_ns), raw)
-        except Exception as exc:
-            raise BagError(f'cannot write {msgtype} on {topic} to {self.path}: {exc}') from None
+        except rosbags_errors() as exc:
+            raise BagError(f'cannot write {msgtype} on {topic} to {self.path}: {exc}') from exc
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def write_cloud(self, topic: str, stamp_ns: int, blob: CloudBlob, frame_id: str,

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.geometry import make_transform
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import BagError, ConfigError, GroundTruthError
-from gft_odom.io._poses import NS_PER_S, decimal_of, trajectory_from_columns
+from gft_odom.io._poses import decimal_of, trajectory_from_columns
 from gft_odom.io.tum import read_text_lines, read_tum
 
 log = logging.getLogger(__name__)
@@ -47,6 +48,7 @@ class GroundTruthConfig:
     lidar_to_gps_xyz_m: tuple[float, float, float] = (-0.22, 0.0, 0.153)
 
     def validate(self) -> None:
+        """Raise ConfigError unless the LiDAR -> GPS offset is 3 finite numbers."""
         xyz = self.lidar_to_gps_xyz_m
         if not isinstance(xyz, (tuple, list)) or len(xyz) != 3:
             raise ConfigError(f'ground_truth.lidar_to_gps_xyz_m needs 3 values, got {xyz!r}')
@@ -73,7 +75,7 @@ def read_ground_truth(path: str | Path, topic: str = '/gps/fix/odometry') -> Tra
         try:
             traj = read_odometry([path], topic=topic)
         except BagError as exc:
-            raise GroundTruthError(f'ground truth bag {path}: {exc}') from None
+            raise GroundTruthError(f'ground truth bag {path}: {exc}') from exc
     elif suffix == '.csv':
         traj = read_ground_truth_csv(path)
     elif suffix in ('.txt', '.tum'):
@@ -161,7 +163,7 @@ def read_ground_truth_csv(path: str | Path) -> Trajectory:
             times.append(decimal_of(tokens[columns['t']]))
             values[i] = [float(tokens[columns[k]]) for k in value_keys]
         except ValueError as exc:
-            raise GroundTruthError(f'{path} line {number}: {exc}') from None
+            raise GroundTruthError(f'{path} line {number}: {exc}') from exc
     if not np.isfinite(values).all():
         bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
         raise GroundTruthError(f'{path} line {lines[bad]}: non-finite value')

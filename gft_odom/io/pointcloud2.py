@@ -18,6 +18,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, sec_nanosec_to_ns
 from gft_odom.core.deskew import time_offsets_from_field
 from gft_odom.core.types import Scan
 from gft_odom.errors import CodecError
@@ -41,7 +42,6 @@ DATATYPE_CODES: dict[int, str] = {
 DATATYPE_SIZES: dict[int, int] = {k: int(v[1]) for k, v in DATATYPE_CODES.items()}
 _DATATYPE_OF_DTYPE: dict[np.dtype, int] = {np.dtype(v): k for k, v in DATATYPE_CODES.items()}
 _UINT32_MAX = 2**32 - 1
-NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,7 @@ class FieldSpec:
 
     @property
     def size_bytes(self) -> int:
+        """Bytes the field takes in one point (datatype size times count)."""
         return DATATYPE_SIZES[self.datatype] * self.count
 
 
@@ -70,6 +71,7 @@ class CloudLayout:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """The field names, in table order."""
         return tuple(f.name for f in self.fields)
 
 
@@ -128,13 +130,13 @@ def _field_specs(msg: Any) -> tuple[FieldSpec, ...]:
     try:
         raw_fields = list(msg.fields)
     except (AttributeError, TypeError) as exc:
-        raise CodecError(f'PointCloud2 has no readable field table: {exc}') from None
+        raise CodecError(f'PointCloud2 has no readable field table: {exc}') from exc
     specs = []
     for i, f in enumerate(raw_fields):
         try:
             name, offset, datatype, count = f.name, f.offset, f.datatype, f.count
         except AttributeError as exc:
-            raise CodecError(f'PointCloud2 field #{i} is not a PointField: {exc}') from None
+            raise CodecError(f'PointCloud2 field #{i} is not a PointField: {exc}') from exc
         if not isinstance(name, str):
             raise CodecError(f'PointCloud2 field #{i} name is not a string: {name!r}')
         specs.append(FieldSpec(name, _as_dim(offset, f'field {name!r} offset'),
@@ -153,7 +155,7 @@ def _byte_buffer(data: Any) -> np.ndarray:
         try:
             return np.frombuffer(memoryview(data).cast('B'), dtype=np.uint8)
         except (TypeError, ValueError) as exc:
-            raise CodecError(f'PointCloud2 data is not a byte buffer: {exc}') from None
+            raise CodecError(f'PointCloud2 data is not a byte buffer: {exc}') from exc
     if isinstance(data, (list, tuple)):
         arr = np.asarray(data)
         if arr.ndim != 1 or (arr.size and (arr.dtype.kind not in 'iu' or arr.min() < 0
@@ -222,7 +224,7 @@ def _decode_fields(msg: Any, fields: tuple[FieldSpec, ...]) -> dict[str, np.ndar
         big_endian = msg.is_bigendian
         data = msg.data
     except AttributeError as exc:
-        raise CodecError(f'not a PointCloud2: {exc}') from None
+        raise CodecError(f'not a PointCloud2: {exc}') from exc
     if not isinstance(big_endian, (bool, np.bool_, int, np.integer)) or int(big_endian) not in (
             0, 1):
         raise CodecError(f'PointCloud2 is_bigendian must be a bool, got {big_endian!r}')
@@ -257,13 +259,13 @@ def stamp_ns_of(header: Any) -> int:
     try:
         sec, nanosec = header.stamp.sec, header.stamp.nanosec
     except AttributeError as exc:
-        raise CodecError(f'message header has no stamp: {exc}') from None
+        raise CodecError(f'message header has no stamp: {exc}') from exc
     if isinstance(sec, bool) or not isinstance(sec, (int, np.integer)):
         raise CodecError(f'header.stamp.sec must be an integer, got {sec!r}')
     if isinstance(nanosec, bool) or not isinstance(nanosec, (int, np.integer)) or not (
             0 <= int(nanosec) < NS_PER_S):
         raise CodecError(f'header.stamp.nanosec must be an integer in [0, 1e9), got {nanosec!r}')
-    return int(sec) * NS_PER_S + int(nanosec)
+    return sec_nanosec_to_ns(sec, nanosec)
 
 
 def decode_scan(msg: Any) -> Scan:

@@ -8,8 +8,6 @@ the old file or the new one, never half of one.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +16,7 @@ from gft_odom.core.geometry import xyz_quat_from_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import GroundTruthError
 from gft_odom.io._poses import ns_to_seconds_text, seconds_text_to_ns, trajectory_from_columns
+from gft_odom.io.atomic import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -29,10 +28,10 @@ def read_text_lines(path: str | Path) -> list[tuple[int, str]]:
     path = Path(path)
     try:
         text = path.read_text(encoding='utf-8')
-    except FileNotFoundError:
-        raise GroundTruthError(f'trajectory file {path} does not exist') from None
+    except FileNotFoundError as exc:
+        raise GroundTruthError(f'trajectory file {path} does not exist') from exc
     except (OSError, UnicodeDecodeError) as exc:
-        raise GroundTruthError(f'cannot read trajectory file {path}: {exc}') from None
+        raise GroundTruthError(f'cannot read trajectory file {path}: {exc}') from exc
     rows = []
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
@@ -59,7 +58,7 @@ def read_tum(path: str | Path) -> Trajectory:
             stamps_ns[i] = seconds_text_to_ns(tokens[0])
             values[i] = [float(t) for t in tokens[1:]]
         except (ValueError, OverflowError) as exc:
-            raise GroundTruthError(f'{path} line {number}: {exc}') from None
+            raise GroundTruthError(f'{path} line {number}: {exc}') from exc
     if not np.isfinite(values).all():
         bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
         raise GroundTruthError(f'{path} line {lines[bad]}: non-finite value')
@@ -76,29 +75,10 @@ def format_tum(traj: Trajectory) -> str:
     return ''.join(line + '\n' for line in lines)
 
 
-def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write `text` to a temp file beside `path`, fsync it, then rename it over `path`."""
-    path = Path(path)
-    tmp_name = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile('w', encoding='utf-8', dir=path.parent,
-                                         prefix=f'.{path.name}.', suffix='.tmp',
-                                         delete=False) as tmp:
-            tmp_name = tmp.name
-            tmp.write(text)
-            tmp.flush()
-            os.fsync(tmp.fileno())
-        os.replace(tmp_name, path)
-        tmp_name = None
-    except OSError as exc:
-        raise GroundTruthError(f'cannot write {path}: {exc}') from None
-    finally:
-        if tmp_name is not None and os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-
-
 def write_tum(path: str | Path, traj: Trajectory) -> None:
     """Write a trajectory as a TUM file (readable by `evo_ape tum`), atomically."""
-    write_text_atomic(path, '# t x y z qx qy qz qw\n' + format_tum(traj))
+    try:
+        write_text_atomic(path, '# t x y z qx qy qz qw\n' + format_tum(traj))
+    except OSError as exc:
+        raise GroundTruthError(f'cannot write {path}: {exc}') from exc
     log.debug('wrote %d poses to %s', len(traj), path)

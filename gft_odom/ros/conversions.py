@@ -9,19 +9,18 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
+from gft_odom.core.constants import ns_to_sec_nanosec, sec_nanosec_to_ns
 from gft_odom.core.geometry import xyz_quat_from_poses
 from gft_odom.io.pointcloud2 import CloudBlob
-
-NS_PER_S = 1_000_000_000
 
 
 def stamp_to_ns(stamp) -> int:
     """`builtin_interfaces/Time` -> int nanoseconds (exact, no float)."""
-    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+    return sec_nanosec_to_ns(stamp.sec, stamp.nanosec)
 
 
 def ns_to_stamp(stamp_ns: int) -> Time:
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
     return Time(sec=sec, nanosec=nanosec)
 
 
@@ -51,21 +50,12 @@ def pose_msg(T: np.ndarray) -> Pose:
 
 
 def odometry_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str, base_frame: str,
-                 covariance: np.ndarray, twist_linear_mps: np.ndarray | None = None,
-                 twist_angular_radps: np.ndarray | None = None) -> Odometry:
+                 covariance: np.ndarray) -> Odometry:
     msg = Odometry()
     msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=odom_frame)
     msg.child_frame_id = base_frame
     msg.pose.pose = pose_msg(T_odom_base)
     msg.pose.covariance = [float(v) for v in np.asarray(covariance, dtype=float).reshape(36)]
-    if twist_linear_mps is not None:
-        msg.twist.twist.linear = Vector3(x=float(twist_linear_mps[0]),
-                                         y=float(twist_linear_mps[1]),
-                                         z=float(twist_linear_mps[2]))
-    if twist_angular_radps is not None:
-        msg.twist.twist.angular = Vector3(x=float(twist_angular_radps[0]),
-                                          y=float(twist_angular_radps[1]),
-                                          z=float(twist_angular_radps[2]))
     return msg
 
 

@@ -22,12 +22,12 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import PointCloud2
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
+from gft_odom.core.constants import NODE_NAME, NS_PER_S
 from gft_odom.errors import GftOdomError
 from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
 from gft_odom.pipeline import FrameResult, OdometryPipeline
 from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg, transform_msg
 
-NODE_NAME = 'filter_odom_node'
 # Sections whose values are only read when the pipeline starts (a change needs a restart).
 STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame', 'evaluation.',
                          'node.base_to_sensor', 'node.publish_tf', 'ground_truth.',
@@ -173,9 +173,10 @@ class FilterOdomNode(Node):
         the stamps beyond registration.max_gap_s is a gap or a clock jump, not lost sweeps."""
         last = self.last_received_stamp_ns
         self.last_received_stamp_ns = stamp_ns
-        if last is None or not 0 < stamp_ns - last <= self.config.registration.max_gap_s * 1e9:
+        if last is None or not 0 < stamp_ns - last <= (
+                self.config.registration.max_gap_s * NS_PER_S):
             return
-        period_ns = self.config.registration.scan_period_s * 1e9
+        period_ns = self.config.registration.scan_period_s * NS_PER_S
         missed = int(round((stamp_ns - last) / period_ns)) - 1
         if missed > 0:
             self._warn('missed', f'{missed} sweep(s) never arrived before the one at '

@@ -42,16 +42,13 @@ class Vlp16Model:
 
     @property
     def n_columns(self) -> int:
+        """Firing columns in one sweep (360 deg / azimuth step)."""
         return int(round(360.0 / self.azimuth_step_deg))
 
     @property
     def period_s(self) -> float:
+        """Duration of one sweep."""
         return 1.0 / self.rate_hz
-
-    @staticmethod
-    def ring_elevations_rad() -> np.ndarray:
-        """Elevation of ring 0..15 (-15..+15 deg in 2 deg steps)."""
-        return np.deg2rad(np.arange(-15.0, 16.0, 2.0))
 
     def ray_table(self) -> dict[str, np.ndarray]:
         """All rays of one sweep in firing order (column by column, lasers in firing order).
@@ -322,7 +319,8 @@ def cast_rays(orchard: Orchard, origins: np.ndarray, directions: np.ndarray,
     ref = origins.mean(axis=0) if n else np.zeros(3)
     spread = float(np.linalg.norm(origins - ref, axis=1).max()) if n else 0.0
 
-    cand_ray, cand_t, cand_surface, cand_prim, cand_cos = [], [], [], [], []
+    # Candidate hits per primitive kind: (ray, t, surface, primitive, cos incidence).
+    candidates: list[tuple[np.ndarray, ...]] = []
 
     cyl = orchard.cylinders
     if len(cyl):
@@ -331,11 +329,7 @@ def cast_rays(orchard: Orchard, origins: np.ndarray, directions: np.ndarray,
                                       np.hypot(half, cyl.radius_m) + spread, ref, max_range_m)
         t, cos = _hit_cylinders(origins[ray], directions[ray], cyl.base_m[prim], cyl.axis[prim],
                                 cyl.length_m[prim], cyl.radius_m[prim])
-        cand_ray.append(ray)
-        cand_t.append(t)
-        cand_surface.append(cyl.surface[prim])
-        cand_prim.append(prim)
-        cand_cos.append(cos)
+        candidates.append((ray, t, cyl.surface[prim], prim, cos))
 
     can = orchard.canopies
     if len(can):
@@ -354,11 +348,7 @@ def cast_rays(orchard: Orchard, origins: np.ndarray, directions: np.ndarray,
         centre[:, 1] += r2[1, 0] * off_u + r2[1, 1] * off_v
         t, cos = _hit_canopies(origins[ray], directions[ray], centre, can.radii_m[prim], r2,
                                canopy_mean_free_path_m, rng)
-        cand_ray.append(ray)
-        cand_t.append(t)
-        cand_surface.append(np.full(ray.size, CANOPY, np.int8))
-        cand_prim.append(prim)
-        cand_cos.append(cos)
+        candidates.append((ray, t, np.full(ray.size, CANOPY, np.int8), prim, cos))
 
     box = orchard.boxes
     if len(box):
@@ -367,20 +357,12 @@ def cast_rays(orchard: Orchard, origins: np.ndarray, directions: np.ndarray,
                                       max_range_m)
         t, cos = _hit_boxes(origins[ray], directions[ray], box.centre_m[prim],
                             box.half_extent_m[prim], box.yaw_rad[prim])
-        cand_ray.append(ray)
-        cand_t.append(t)
-        cand_surface.append(box.surface[prim])
-        cand_prim.append(prim)
-        cand_cos.append(cos)
+        candidates.append((ray, t, box.surface[prim], prim, cos))
 
-    if cand_ray:
-        ray = np.concatenate(cand_ray)
-        t = np.concatenate(cand_t)
+    if candidates:
+        ray, t, surface, prim, cos = (np.concatenate(column) for column in zip(*candidates))
         hit = np.isfinite(t)
-        ray, t = ray[hit], t[hit]
-        surface = np.concatenate(cand_surface)[hit]
-        prim = np.concatenate(cand_prim)[hit]
-        cos = np.concatenate(cand_cos)[hit]
+        ray, t, surface, prim, cos = ray[hit], t[hit], surface[hit], prim[hit], cos[hit]
         np.minimum.at(best_t, ray, t)
         win = t == best_t[ray]
         best_surface[ray[win]] = surface[win]

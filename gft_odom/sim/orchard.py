@@ -43,26 +43,21 @@ class Heightfield:
     resolution_m: float
     z_m: np.ndarray  # (nx, ny) float64
 
-    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Ground height at world points (any matching shapes)."""
+    def _corners(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Cell fractions fx, fy and the heights z00, z01, z10, z11 of the cell's corners."""
         fx, fy, flat = self._cell(x, y)
         z = self.z_m.reshape(-1)
         ny = self.z_m.shape[1]
-        z00 = z[flat]
-        z01 = z[flat + 1]
-        z10 = z[flat + ny]
-        z11 = z[flat + ny + 1]
+        return fx, fy, z[flat], z[flat + 1], z[flat + ny], z[flat + ny + 1]
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Ground height at world points (any matching shapes)."""
+        fx, fy, z00, z01, z10, z11 = self._corners(x, y)
         return z00 + fx * (z10 - z00) + fy * (z01 - z00 + fx * (z11 - z10 - z01 + z00))
 
     def gradient(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """dz/dx and dz/dy of the bilinear surface at world points."""
-        fx, fy, flat = self._cell(x, y)
-        z = self.z_m.reshape(-1)
-        ny = self.z_m.shape[1]
-        z00 = z[flat]
-        z01 = z[flat + 1]
-        z10 = z[flat + ny]
-        z11 = z[flat + ny + 1]
+        fx, fy, z00, z01, z10, z11 = self._corners(x, y)
         dzdx = ((z10 - z00) * (1.0 - fy) + (z11 - z01) * fy) / self.resolution_m
         dzdy = ((z01 - z00) * (1.0 - fx) + (z11 - z10) * fx) / self.resolution_m
         return dzdx, dzdy
@@ -170,6 +165,7 @@ class Orchard:
 
     @property
     def rotation_2d(self) -> np.ndarray:
+        """2-D rotation from row-aligned axes to world x, y."""
         c, s = np.cos(self.heading_rad), np.sin(self.heading_rad)
         return np.array([[c, -s], [s, c]])
 

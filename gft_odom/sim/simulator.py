@@ -17,14 +17,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gft_odom.config import NodeConfig
+from gft_odom.core.constants import NS_PER_S, SCAN_PERIOD_S
 from gft_odom.core.geometry import make_transform, rpy_transform
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
+from gft_odom.io.ground_truth import GroundTruthConfig
 from gft_odom.sim.lidar import SURFACE_REFLECTIVITY, Vlp16Model, cast_rays
 from gft_odom.sim.motion import RobotMotion, make_motion, required_row_length_m
 from gft_odom.sim.orchard import Orchard, generate_orchard
-
-NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,7 @@ class SimConfig:
     yaw_wobble_rad: float = 0.02
     # VLP-16: 0.2 deg at 10 Hz (the real sensor; coarser steps only to make tests cheap).
     azimuth_step_deg: float = 0.2
-    scan_rate_hz: float = 10.0
+    scan_rate_hz: float = 1.0 / SCAN_PERIOD_S
     min_range_m: float = 0.4
     max_range_m: float = 100.0
     # Datasheet: typical accuracy +-3 cm; a 1-sigma of 2.5 cm matches what people measure.
@@ -58,10 +59,11 @@ class SimConfig:
     motion_distortion: bool = True
     # CitrusFarm's ROS 1 PointXYZIR layout, without the per-point `time` field.
     legacy_fields: bool = False
-    # Jackal: base_link -> velodyne, and the GPS antenna in the LiDAR frame (as CitrusFarm).
-    base_to_sensor_xyz_m: tuple[float, ...] = (0.04, 0.0, 0.38)
-    base_to_sensor_rpy_rad: tuple[float, ...] = (0.0, 0.0, 0.0)
-    sensor_to_gps_xyz_m: tuple[float, ...] = (-0.22, 0.0, 0.153)
+    # Jackal: base_link -> velodyne, and the GPS antenna in the LiDAR frame (as CitrusFarm):
+    # the package defaults, so a simulated bag matches what the node and the tools assume.
+    base_to_sensor_xyz_m: tuple[float, ...] = NodeConfig.base_to_sensor_xyz_m
+    base_to_sensor_rpy_rad: tuple[float, ...] = NodeConfig.base_to_sensor_rpy_rad
+    sensor_to_gps_xyz_m: tuple[float, ...] = GroundTruthConfig.lidar_to_gps_xyz_m
     gps_rate_hz: float = 10.0
     # First sweep stamp (2023-07-22T00:00:00Z, an arbitrary realistic epoch).
     start_time_s: float = 1690000000.0
@@ -151,6 +153,7 @@ class ScanSimulator:
         return cls(orchard, motion, config, seed)
 
     def stamp_ns(self, index: int) -> int:
+        """Header stamp of sweep `index` (the sweep start)."""
         return self.start_ns + index * self.period_ns
 
     def sensor_poses(self, t_s: np.ndarray) -> np.ndarray:

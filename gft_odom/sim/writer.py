@@ -21,11 +21,12 @@ from typing import Callable
 
 import numpy as np
 
+from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import SimulationError
 from gft_odom.sim.motion import SCENARIOS
-from gft_odom.sim.simulator import NS_PER_S, ScanSimulator, SimConfig
+from gft_odom.sim.simulator import ScanSimulator, SimConfig
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,10 @@ GPS_TOPIC = '/gps/fix/odometry'
 GPS_PHASE_S = 0.037
 # Points kept for the picture (a stride over each scan keeps memory bounded on long runs).
 TOPDOWN_MAX_POINTS = 3_000_000
+# topdown.png shows the path plus this much around it.
+TOPDOWN_MARGIN_M = 15.0
+# Pixels whose highest point is below this height are ground (one colour in topdown.png).
+TOPDOWN_GROUND_M = 0.2
 
 
 @dataclass
@@ -52,6 +57,7 @@ class SimulationResult:
 
     @property
     def median_seconds_per_scan(self) -> float:
+        """Median wall time to simulate one sweep (0 when none)."""
         return float(np.median(self.seconds_per_scan)) if self.seconds_per_scan else 0.0
 
 
@@ -153,33 +159,36 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
 def _write_gt_csv(path: Path, traj: Trajectory) -> None:
     """CitrusFarm-style gt.csv: a header, then time (s, 9 decimals) x y z qx qy qz qw."""
     from gft_odom.core.geometry import xyz_quat_from_poses
-    from gft_odom.io.tum import write_text_atomic
+    from gft_odom.io.atomic import write_text_atomic
 
     xyz, quat = xyz_quat_from_poses(traj.poses)
     lines = ['timestamp,x,y,z,qx,qy,qz,qw']
     for stamp, p, q in zip(traj.stamps_ns.tolist(), xyz, quat):
-        sec, nsec = divmod(int(stamp), NS_PER_S)
+        sec, nsec = ns_to_sec_nanosec(stamp)
         lines.append(f'{sec}.{nsec:09d},' + ','.join(f'{v:.6f}' for v in p) + ','
                      + ','.join(f'{v:.9f}' for v in q))
     write_text_atomic(path, '\n'.join(lines) + '\n')
 
 
 def render_topdown(path: Path, points_xyz: np.ndarray, height_above_ground_m: np.ndarray,
-                   path_xyz: np.ndarray, title: str = '', pixel_m: float = 0.1) -> None:
-    """Top-down image: per pixel the highest point above the ground, plus the path."""
+                   path_xyz: np.ndarray, title: str = '', pixel_m: float = 0.1,
+                   margin_m: float = TOPDOWN_MARGIN_M) -> None:
+    """Top-down image around the path: per pixel the highest point above the ground, on a
+    quantile colour scale (most pixels are ground, a linear scale hides the trees)."""
     import matplotlib
 
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    from matplotlib.colors import BoundaryNorm
 
     if points_xyz.shape[0] == 0:
         raise SimulationError(f'no points to draw in {path}')
     xy = points_xyz[:, :2].astype(float)
     lo = np.minimum(xy.min(axis=0), path_xyz[:, :2].min(axis=0)) - 1.0
     hi = np.maximum(xy.max(axis=0), path_xyz[:, :2].max(axis=0)) + 1.0
-    # Keep the picture to a sane size: crop to 60 m around the path.
-    lo = np.maximum(lo, path_xyz[:, :2].min(axis=0) - 60.0)
-    hi = np.minimum(hi, path_xyz[:, :2].max(axis=0) + 60.0)
+    # The path plus a margin: the far returns of a +-60 m sweep make the path a speck.
+    lo = np.maximum(lo, path_xyz[:, :2].min(axis=0) - margin_m)
+    hi = np.minimum(hi, path_xyz[:, :2].max(axis=0) + margin_m)
     pixel_m = max(pixel_m, float((hi - lo).max()) / 1500.0)  # at most ~1500 pixels a side
     shape = np.ceil((hi - lo) / pixel_m).astype(int) + 1
     ij = np.floor((xy - lo) / pixel_m).astype(int)
@@ -192,7 +201,22 @@ def render_topdown(path: Path, points_xyz: np.ndarray, height_above_ground_m: np
     width_in = 10.0
     aspect = shape[1] / shape[0]
     fig, ax = plt.subplots(figsize=(width_in, float(np.clip(width_in * aspect, 4.0, 14.0))))
-    im = ax.imshow(image.T, origin='lower', cmap='viridis', vmin=-0.2, vmax=3.5,
+    # Ground (most pixels) one colour, then deciles of the pixels above it: a quantile scale
+    # over all pixels spends its colours on centimetres of ground noise.
+    seen = image[np.isfinite(image)]
+    above = seen[seen > TOPDOWN_GROUND_M]
+    edges = None
+    if above.size > 10:
+        edges = np.unique(np.concatenate((
+            [min(seen.min(), TOPDOWN_GROUND_M - 0.1), TOPDOWN_GROUND_M],
+            np.quantile(above, np.linspace(0.0, 1.0, 11))[1:])))
+    scale = {'vmin': -0.2, 'vmax': 3.5}
+    if edges is not None and edges.size >= 3:
+        cmap = plt.get_cmap('viridis', edges.size - 1)
+        scale = {'norm': BoundaryNorm(edges, cmap.N)}
+    else:
+        cmap, edges = plt.get_cmap('viridis'), None
+    im = ax.imshow(image.T, origin='lower', cmap=cmap, **scale,
                    extent=(lo[0], lo[0] + shape[0] * pixel_m, lo[1], lo[1] + shape[1] * pixel_m),
                    interpolation='nearest')
     ax.plot(path_xyz[:, 0], path_xyz[:, 1], color='red', lw=1.2, label='ground truth (LiDAR)')
@@ -202,10 +226,24 @@ def render_topdown(path: Path, points_xyz: np.ndarray, height_above_ground_m: np
     ax.set_aspect('equal')
     ax.set_title(title, fontsize=9)
     ax.legend(loc='upper right', fontsize=8)
-    fig.colorbar(im, ax=ax, shrink=0.7, label='highest point above ground [m]')
+    bar = fig.colorbar(im, ax=ax, shrink=0.7, label='highest point above ground [m]')
+    if edges is not None:
+        bar.set_ticks(edges)
+        bar.set_ticklabels(_distinct_labels(edges))
+        bar.ax.set_title(f'ground, then\ndeciles of the\npixels above\n{TOPDOWN_GROUND_M} m',
+                         fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, bbox_inches='tight')
     plt.close(fig)
+
+
+def _distinct_labels(values: np.ndarray) -> list[str]:
+    """Fewest decimals (>= 2) at which neighbouring tick values read differently."""
+    for decimals in range(2, 7):
+        labels = [f'{v:.{decimals}f}' for v in values]
+        if all(a != b for a, b in zip(labels, labels[1:])):
+            return labels
+    return [f'{v:.6g}' for v in values]
 
 
 __all__ = ['GPS_TOPIC', 'LIDAR_TOPIC', 'SimulationResult', 'bag_path_for', 'render_topdown',

@@ -1,8 +1,8 @@
 """`gft-odom`: one command, one sub-command per task.
 
 Each sub-command lives in its own module `gft_odom.tools.cmd_<name>` exposing
-`add_parser(subparsers)` (returns the parser) and `run(args) -> int`. Only this module turns
-package errors into exit codes.
+`HELP` (one line for the command list), `DESCRIPTION` (for its --help), `add_arguments(p)`
+and `run(args) -> int`. Only this module turns package errors into exit codes.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from gft_odom.errors import GftOdomError
 SUBCOMMAND_MODULES = (
     'simulate',
     'spectrum',
+    'frequencies',
     'replay',
     'demo',
     'config',
@@ -28,6 +29,7 @@ log = logging.getLogger('gft_odom')
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The gft-odom parser with every sub-command."""
     parser = argparse.ArgumentParser(
         prog='gft-odom',
         description='Graph-frequency filtered LiDAR odometry for orchards.')
@@ -35,12 +37,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
     for name in SUBCOMMAND_MODULES:
         module = importlib.import_module(f'gft_odom.tools.cmd_{name}')
-        p = module.add_parser(sub)
+        p = sub.add_parser(name.replace('_', '-'), help=module.HELP,
+                           description=module.DESCRIPTION)
+        module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the gft-odom command line; package errors become one log line and exit 1."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

@@ -20,15 +20,17 @@ from gft_odom.bench.report import (
     bench_to_dict,
     markdown_page,
     plot_figures,
+    summary_table,
     write_json,
-    write_text_atomic,
 )
 from gft_odom.bench.runner import METHODS, profile_method, run_bench, simulate_sequences
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.errors import ConfigError
+from gft_odom.io.atomic import write_text_atomic
 from gft_odom.params_file import load_config
 from gft_odom.sim.motion import SCENARIOS
 from gft_odom.sim.simulator import SimConfig
+from gft_odom.tools.args import add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -51,12 +53,14 @@ def _ament_prefixes() -> list[str]:
     return [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'bench', help='benchmark paper ICP, our registration (each +/- filter) and kiss-icp',
-        description='Simulate orchard drives (every scenario x seed), replay each through the '
-                    'five methods with the same clock and metrics; write JSON, a Markdown page '
-                    'and plots. The band mask comes from --config (chosen on other seeds).')
+HELP = 'benchmark paper ICP, our registration (each +/- filter) and kiss-icp'
+DESCRIPTION = ('Simulate orchard drives (every scenario x seed), replay each through the '
+               'five methods with the same clock and metrics; write JSON, a Markdown page '
+               'and plots. The band mask comes from --config (chosen on other seeds).')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom bench`."""
     p.add_argument('--seeds', type=int, nargs='+', default=list(DEFAULT_SEEDS),
                    help=f'simulator seeds (default {" ".join(map(str, DEFAULT_SEEDS))}); keep '
                         'them disjoint from those the band mask was chosen on')
@@ -66,17 +70,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='simulated VLP-16 azimuth step (0.2 = the real sensor; coarser only to '
                         'make tests cheap)')
     p.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
-    p.add_argument('--config', metavar='YAML',
-                   help="params file with the band mask (default: the package's "
-                        'config/filter_odom.yaml)')
-    p.add_argument('--set', dest='overrides', action='append', default=[],
-                   metavar='SECTION.KEY=VALUE', help='override one parameter')
+    add_config(p, help="params file with the band mask (default: the package's "
+                                 'config/filter_odom.yaml)')
     p.add_argument('--mask-provenance', default='',
                    help='one sentence for the page: how and on which seeds the mask was chosen')
     p.add_argument('--json', default='benchmarks/results/bench.json', help='JSON output')
     p.add_argument('--markdown', default='docs/benchmarks.md', help='Markdown page output')
     p.add_argument('--figures-dir', help="PNG folder (default: the Markdown page's folder)")
-    p.add_argument('--no-figures', action='store_true')
     p.add_argument('--work-dir', help='keep the simulated bags here (default: a temporary '
                                       'folder, deleted at the end)')
     p.add_argument('--profile-scans', type=int, default=0,
@@ -92,11 +92,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--kiss-no-deskew', action='store_true')
     g.add_argument('--kiss-threads', type=int, default=d.max_num_threads,
                    help='0 = all cores (kiss-icp default)')
-    p.add_argument('--quiet', action='store_true', help='no progress bars')
-    return p
+    add_switches(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    """Configure, measure every method on the simulated sequences, write and print results."""
+    config_path, base_config, kiss_config, sim_config = _configs(args)
+    version = kiss_icp_version() if 'kiss-icp' in args.methods else 'not run'
+    bench = _measure(args, base_config, kiss_config, sim_config)
+    document = bench_to_dict(bench, _settings(args, config_path, base_config, kiss_config,
+                                              version))
+    _write_and_print(args, bench, document)
+    return 0
+
+
+def _configs(args: argparse.Namespace):
+    """(config path, pipeline config, kiss-icp config, simulator config), all validated."""
     if args.scans < 2:
         raise ConfigError(f'--scans must be >= 2, got {args.scans}')
     config_path = Path(args.config) if args.config else default_config_path()
@@ -106,10 +117,14 @@ def run(args: argparse.Namespace) -> int:
         voxel_size_m=args.kiss_voxel_size_m, deskew=not args.kiss_no_deskew,
         max_num_threads=args.kiss_threads)
     kiss_config.validate()
-    version = kiss_icp_version() if 'kiss-icp' in args.methods else 'not run'
     sim_config = SimConfig(azimuth_step_deg=args.azimuth_step_deg)
     sim_config.validate()
+    return config_path, base_config, kiss_config, sim_config
 
+
+def _measure(args: argparse.Namespace, base_config, kiss_config: KissIcpConfig,
+             sim_config: SimConfig):
+    """Simulate the sequences, run every method on them, profile if asked; the bench run."""
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix='gft_bench_'))
     try:
         n_seq = len(args.seeds) * len(args.scenarios)
@@ -131,10 +146,15 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if not args.work_dir:
             shutil.rmtree(work, ignore_errors=True)
+    return bench
 
+
+def _settings(args: argparse.Namespace, config_path, base_config, kiss_config: KissIcpConfig,
+              version: str) -> dict:
+    """What the run was asked to do, for the JSON and the page."""
     spectral = base_config.spectral
     mask = BandMask.parse(spectral.band_mask, spectral.n_bands)
-    settings = {
+    return {
         'command': 'gft-odom bench ' + ' '.join(shlex.quote(a) for a in sys.argv[2:])
         if len(sys.argv) > 1 and sys.argv[1] == 'bench' else 'gft-odom bench (API)',
         'seeds': list(args.seeds), 'scenarios': list(args.scenarios), 'n_scans': args.scans,
@@ -156,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
         'registration_config': _as_dict(base_config.registration),
         'spectral_config': _as_dict(spectral),
     }
-    document = bench_to_dict(bench, settings)
+
+
+def _write_and_print(args: argparse.Namespace, bench, document: dict) -> None:
+    """JSON, figures and the Markdown page; the summary table and targets on stdout."""
     json_path = write_json(Path(args.json), document)
     md_path = Path(args.markdown)
     figures = {}
@@ -168,12 +191,10 @@ def run(args: argparse.Namespace) -> int:
     if args.notes_file:
         notes = Path(args.notes_file).read_text() + ('\n' + notes if notes else '')
     write_text_atomic(md_path, markdown_page(document, figures, notes))
-    from gft_odom.bench.report import summary_table
     print(summary_table(document['summary']))
     for t in document['targets']:
         print(f'[{"met" if t["met"] else "MISSED"}] {t["target"]}: {t["measured"]}')
     print(f'wrote {json_path}, {md_path}' + ''.join(f', {p}' for p in figures.values()))
-    return 0
 
 
 def _as_dict(cfg) -> dict:

@@ -15,6 +15,8 @@ from gft_odom.core.spectral.bands import BandMask
 from gft_odom.params_file import load_config, packaged_params_file
 from gft_odom.replay import run_replay, write_json, write_results
 from gft_odom.sim.writer import simulate_to_bag
+from gft_odom.tables import columns, markdown_table
+from gft_odom.tools.args import add_switches
 from gft_odom.tools.progress import progress_bar
 
 # (run name, packaged params file, filter on): each registration mode with the mask chosen
@@ -25,24 +27,18 @@ VARIANTS = (
     ('default', 'filter_odom.yaml', False),
     ('default+gft', 'default_mode_gft.yaml', True),
 )
-COLUMNS = (
-    ('ATE RMSE [m]', 'ate_rmse_m', '{:.3f}'),
-    ('ATE mean [m]', 'ate_mean_m', '{:.3f}'),
-    ('paper MSE [m^2]', 'paper_mse_m2', '{:.4f}'),
-    ('RPE drift [%]', 'rpe_drift_pct', '{:.2f}'),
-    ('latency median [ms]', 'latency_median_ms', '{:.1f}'),
-    ('latency p95 [ms]', 'latency_p95_ms', '{:.1f}'),
-    ('points kept', 'points_kept_fraction', '{:.1%}'),
-    ('band mask', 'mask_text', '{}'),
-    ('fallbacks', 'fallbacks', '{:d}'),
-)
+COLUMNS = columns('ate_rmse_m', 'ate_mean_m', 'paper_mse_m2', 'rpe_drift_pct',
+                  'latency_median_ms', 'latency_p95_ms', 'points_kept_fraction', 'mask_text',
+                  'fallbacks')
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'demo', help='simulate an orchard bag and replay it with and without the filter',
-        description='The embedded default: a SYNTHETIC orchard (not real data) replayed in '
-                    'paper and default registration modes, each with and without the filter.')
+HELP = 'simulate an orchard bag and replay it with and without the filter'
+DESCRIPTION = ('The embedded default: a SYNTHETIC orchard (not real data) replayed in '
+               'paper and default registration modes, each with and without the filter.')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom demo`."""
     p.add_argument('--out', default='demo_out', help='results folder (default: demo_out)')
     p.add_argument('--scenario', default='uturn', choices=('row', 'uturn', 'loop'))
     p.add_argument('--scans', type=int, default=150, help='number of scans to simulate')
@@ -50,24 +46,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='orchard seed (the band mask was not chosen on it)')
     p.add_argument('--set', dest='overrides', action='append', default=[],
                    metavar='SECTION.KEY=VALUE', help='override one parameter in every run')
-    p.add_argument('--quiet', action='store_true', help='no progress bars')
-    return p
+    add_switches(p, figures=False)
 
 
 def format_table(rows: list[tuple[str, dict]]) -> str:
     """A Markdown table, one run per row."""
-    header = '| run | ' + ' | '.join(title for title, _, _ in COLUMNS) + ' |'
-    lines = [header, '|' + '---|' * (len(COLUMNS) + 1)]
-    for name, metrics in rows:
-        cells = []
-        for _, key, fmt in COLUMNS:
-            value = metrics.get(key)
-            cells.append('n/a' if value is None else fmt.format(value))
-        lines.append(f'| {name} | ' + ' | '.join(cells) + ' |')
-    return '\n'.join(lines)
+    return markdown_table(rows, COLUMNS, 'run')
 
 
 def run(args: argparse.Namespace) -> int:
+    """Simulate, replay four ways, write and print the table."""
     out = Path(args.out)
     if (out / 'data').exists():  # the demo's own simulated bag from an earlier run
         shutil.rmtree(out / 'data')

@@ -8,45 +8,37 @@ import logging
 
 from gft_odom.params_file import load_config
 from gft_odom.replay import run_replay, write_results
+from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
 
-def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    """--config / --set, shared by every sub-command that runs the pipeline."""
-    parser.add_argument('--config', metavar='YAML',
-                        help='ROS params file (as for filter_odom_node --params-file)')
-    parser.add_argument('--set', dest='overrides', action='append', default=[],
-                        metavar='SECTION.KEY=VALUE',
-                        help='override one parameter, e.g. --set spectral.band_mask=[1,9,10]')
+HELP = 'replay bags through the odometry pipeline'
+DESCRIPTION = ('Replay LiDAR scans from ROS 1 .bag files (split parts in time order) or '
+               'rosbag2 folders through the pipeline; write TUM poses, metrics.json, the '
+               'effective config and figures to --out.')
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'replay', help='replay bags through the odometry pipeline',
-        description='Replay LiDAR scans from ROS 1 .bag files (split parts in time order) or '
-                    'rosbag2 folders through the pipeline; write TUM poses, metrics.json, the '
-                    'effective config and figures to --out.')
-    p.add_argument('bags', nargs='+', metavar='BAG', help='bag file(s) or rosbag2 folder')
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom replay`."""
+    add_bags(p)
     p.add_argument('--out', required=True, help='results folder')
     p.add_argument('--gt', help='ground truth: gt.csv, gt.bag (/gps/fix/odometry) or TUM file')
-    add_config_arguments(p)
+    add_config(p)
     p.add_argument('--no-filter', action='store_true',
                    help='bypass the spectral filter (same registration): the baseline')
-    p.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
     p.add_argument('--max-scans', type=int, help='stop after this many scans')
-    p.add_argument('--no-figures', action='store_true', help='skip the PNG figures')
     p.add_argument('--through-node', action='store_true',
                    help='run the colcon-installed filter_odom_node as its own process and feed '
                         'it over DDS (with /clock) instead of in-process')
     p.add_argument('--node-exe', help='path of filter_odom_node for --through-node '
                    '(default: <prefix>/lib/gft_odom/filter_odom_node from AMENT_PREFIX_PATH)')
-    p.add_argument('--quiet', action='store_true', help='no progress bar')
-    return p
+    add_switches(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    """Replay the bags and write the results folder."""
     overrides = list(args.overrides)
     if args.no_filter:
         overrides.append('pipeline.use_spectral_filter=false')

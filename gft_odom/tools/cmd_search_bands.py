@@ -7,22 +7,24 @@ import logging
 
 from gft_odom.errors import ConfigError
 from gft_odom.params_file import load_config
-from gft_odom.tools.cmd_replay import add_config_arguments
+from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'search-bands', help='search band masks on training bags, score the best held-out',
-        description='Rank band masks by trajectory error on the training bags (in-sample), '
-                    'report the chosen mask on --test bags (held-out) beside the unfiltered '
-                    'baseline, and write best_mask.yaml for filter_odom_node --params-file. '
-                    'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
-                    'one sequence. Results are appended as they finish: rerun the same command '
-                    'to resume.')
-    p.add_argument('bags', nargs='+', metavar='BAG', help='training bag(s)')
+HELP = 'search band masks on training bags, score the best held-out'
+DESCRIPTION = ('Rank band masks by trajectory error on the training bags (in-sample), '
+               'report the chosen mask on --test bags (held-out) beside the unfiltered '
+               'baseline, and write best_mask.yaml for filter_odom_node --params-file. '
+               'BAG i pairs with GT i; with a single --gt all BAGs are the split parts of '
+               'one sequence. Results are appended as they finish: rerun the same command '
+               'to resume.')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom search-bands`."""
+    add_bags(p, help='training bag(s)')
     p.add_argument('--gt', nargs='+', required=True, metavar='GT',
                    help='ground truth per training bag (gt.csv, gt.bag or TUM)')
     p.add_argument('--out', required=True, help='output folder (also the resume state)')
@@ -38,12 +40,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument('--workers', type=int, default=1, help='local worker processes')
     p.add_argument('--ray-address', metavar='ADDR',
                    help='run on an existing Ray cluster (e.g. 127.0.0.1:6379)')
-    add_config_arguments(p)
-    p.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
+    add_config(p)
     p.add_argument('--max-scans', type=int, help='use the first N scans of each sequence')
-    p.add_argument('--no-figures', action='store_true', help='skip the PNG figures')
-    p.add_argument('--quiet', action='store_true', help='no progress bar')
-    return p
+    add_switches(p)
 
 
 def pair_sequences(bags: list[str], gts: list[str], what: str):
@@ -60,6 +59,7 @@ def pair_sequences(bags: list[str], gts: list[str], what: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    """Search the masks and write the results and best_mask.yaml."""
     from gft_odom.bands.run import run_band_search, summary_markdown
     from gft_odom.bands.search import BandSearchConfig
 

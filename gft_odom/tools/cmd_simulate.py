@@ -13,12 +13,14 @@ from gft_odom.sim.writer import simulate_to_bag
 log = logging.getLogger(__name__)
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'simulate', help='simulate a VLP-16 on a Jackal driving through a citrus orchard',
-        description='Simulate a VLP-16 on a Jackal in a synthetic citrus orchard and write a '
-                    'bag (/velodyne_points, /gps/fix/odometry), ground_truth/gt.csv, '
-                    'ground_truth/gt_sensor_tum.txt and topdown.png under --out.')
+HELP = 'simulate a VLP-16 on a Jackal driving through a citrus orchard'
+DESCRIPTION = ('Simulate a VLP-16 on a Jackal in a synthetic citrus orchard and write a '
+               'bag (/velodyne_points, /gps/fix/odometry), ground_truth/gt.csv, '
+               'ground_truth/gt_sensor_tum.txt and topdown.png under --out.')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom simulate`."""
     p.add_argument('--scenario', choices=SCENARIOS, default='row',
                    help='row: straight between two rows; uturn: down one row and back along '
                         'the next; loop: around a block of rows (default: row)')
@@ -35,10 +37,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument('--azimuth-step-deg', type=float, default=SimConfig.azimuth_step_deg,
                    help='horizontal resolution (0.2 = real VLP-16; coarser is faster)')
     p.add_argument('--no-png', action='store_true', help='skip topdown.png')
-    return p
 
 
 def run(args: argparse.Namespace) -> int:
+    """Simulate the drive and write its bag and ground truth."""
     from tqdm import tqdm
 
     config = dataclasses.replace(SimConfig(), motion_distortion=not args.no_distortion,

@@ -14,84 +14,85 @@ from pathlib import Path
 
 import numpy as np
 
-from gft_odom.errors import GroundTruthError
+from gft_odom.core.trajectory import Trajectory
+from gft_odom.figures import NO_SPECTRUM_COLOUR, pyplot
+from gft_odom.tools.args import add_bags, add_config
 
 log = logging.getLogger(__name__)
 
-# Dark blue (low nu) -> light green (high nu), as in the paper's figure.
-FREQUENCY_COLOURS = ('#081d58', '#253494', '#1d91c0', '#41b6c4', '#7fcdbb', '#c7e9b4',
-                     '#edf8b1')
-NO_SPECTRUM_COLOUR = '#d0d0d0'
 MAX_PLOT_POINTS = 1_500_000
 # A scan whose stamp is further than this outside the ground truth's time span is an error.
 MAX_EXTRAPOLATION_S = 0.1
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        'spectrum', help='colour a merged cloud by graph frequency (PNG)',
-        description='Merge the first N scans of a bag into the world frame with ground-truth '
-                    "sensor poses and write a PNG coloured by each point's graph frequency "
-                    'nu (top-down and side view).')
-    p.add_argument('bags', nargs='+', metavar='BAG', help='bag file(s) or rosbag2 folder')
+HELP = 'colour a merged cloud by graph frequency (PNG)'
+DESCRIPTION = ('Merge the first N scans of a bag into the world frame with ground-truth '
+               "sensor poses and write a PNG coloured by each point's graph frequency "
+               'nu (top-down and side view).')
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of `gft-odom spectrum`."""
+    add_bags(p, nargs='*')
+    p.add_argument('--pcd', metavar='DIR',
+                   help='instead of bags: a folder written by `gft-odom frequencies` (the '
+                        'frequencies are read, not computed)')
     p.add_argument('--gt', required=True,
                    help='ground-truth SENSOR poses: TUM file (e.g. ground_truth/'
                         'gt_sensor_tum.txt from `gft-odom simulate`), gt.csv or gt.bag')
     p.add_argument('--out', required=True, help='output PNG path')
     p.add_argument('--scans', type=int, default=50, help='number of scans to merge (50)')
     p.add_argument('--every', type=int, default=1, help='use every k-th scan (1)')
-    p.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
-    p.add_argument('--config', metavar='YAML', help='ROS params file (spectral section used)')
-    p.add_argument('--set', dest='overrides', action='append', default=[],
-                   metavar='SECTION.KEY=VALUE',
-                   help='override a parameter, e.g. --set spectral.tau_m=0.3')
+    add_config(p, help='ROS params file (spectral section used)')
     p.add_argument('--radius-m', type=float, default=30.0,
                    help='draw points within this distance (x, y) of the sensor path (30)')
     p.add_argument('--colour-scale', choices=('quantile', 'linear'), default='quantile',
                    help='quantile: each colour holds an equal share of the points (nu is '
                         'far from uniform); linear: nu 0..1 (default quantile)')
     p.add_argument('--title', help='figure title')
-    return p
 
 
-def pose_at(stamps_ns: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray:
-    """T_world_sensor at `stamp_ns`: linear in position, slerp in rotation."""
-    from scipy.spatial.transform import Rotation, Slerp
-
-    span = (stamps_ns[0] - MAX_EXTRAPOLATION_S * 1e9, stamps_ns[-1] + MAX_EXTRAPOLATION_S * 1e9)
-    if not span[0] <= stamp_ns <= span[1]:
-        raise GroundTruthError(
-            f'scan stamp {stamp_ns * 1e-9:.3f} s is outside the ground truth '
-            f'({stamps_ns[0] * 1e-9:.3f} .. {stamps_ns[-1] * 1e-9:.3f} s)')
-    if len(stamps_ns) == 1:
-        return poses[0]
-    k = int(np.clip(np.searchsorted(stamps_ns, stamp_ns) - 1, 0, len(stamps_ns) - 2))
-    t0, t1 = int(stamps_ns[k]), int(stamps_ns[k + 1])
-    a = float(np.clip((stamp_ns - t0) / max(t1 - t0, 1), 0.0, 1.0))
-    T = np.eye(4)
-    T[:3, 3] = (1.0 - a) * poses[k, :3, 3] + a * poses[k + 1, :3, 3]
-    slerp = Slerp([0.0, 1.0], Rotation.from_matrix(poses[k:k + 2, :3, :3]))
-    T[:3, :3] = slerp([a]).as_matrix()[0]
-    return T
+def scan_frequencies(scans, spectral_filter):
+    """(stamp_ns, points_xyz, nu) of every scan, nu computed by the filter."""
+    for scan in scans:
+        freqs = spectral_filter.scan_frequencies(scan)
+        yield scan.stamp_ns, scan.points_xyz, freqs.nu
 
 
-def merge_frequencies(scans, traj, spectral_filter, max_scans: int, every: int = 1):
-    """World points (M, 3), their nu (M,) (NaN: no spectrum), and the sensor positions."""
+def pcd_frequencies(pcd_dir: str | Path):
+    """(stamp_ns, points_xyz, nu) of every `<stamp ns>.pcd` of `gft-odom frequencies`."""
+    from gft_odom.errors import BagError
+    from gft_odom.io.pcd import read_pcd
+
+    files = sorted((p for p in Path(pcd_dir).glob('*.pcd') if p.stem.isdigit()),
+                   key=lambda p: int(p.stem))
+    if not files:
+        raise BagError(f'no <stamp ns>.pcd files in {pcd_dir}')
+    for path in files:
+        cloud = read_pcd(path)
+        if 'frequency' not in cloud.dtype.names:
+            raise BagError(f'{path} has no frequency field (fields: {cloud.dtype.names})')
+        xyz = np.stack([cloud['x'], cloud['y'], cloud['z']], axis=1).astype(np.float64)
+        yield int(path.stem), xyz, cloud['frequency']
+
+
+def merge_frequencies(frames, traj, max_scans: int, every: int = 1):
+    """World points (M, 3), their nu (M,) (NaN: no spectrum), and the sensor positions, from
+    (stamp_ns, points_xyz, nu) frames in the sensor frame."""
     from gft_odom.core.geometry import transform_points
 
     order = np.argsort(traj.stamps_ns, kind='stable')
-    stamps, poses = traj.stamps_ns[order], traj.poses[order]
+    traj = Trajectory(traj.stamps_ns[order], traj.poses[order])
     points, nus, positions = [], [], []
-    for index, scan in enumerate(scans):
+    for index, (stamp_ns, xyz, nu) in enumerate(frames):
         if len(positions) >= max_scans:
             break
         if index % every:
             continue
-        T = pose_at(stamps, poses, scan.stamp_ns)
-        freqs = spectral_filter.frequencies(scan.points_xyz)
-        ok = freqs.finite
-        points.append(transform_points(T, scan.points_xyz[ok]))
-        nus.append(freqs.nu[ok])
+        T = traj.pose_at(stamp_ns, MAX_EXTRAPOLATION_S)
+        ok = np.isfinite(xyz).all(axis=1)
+        points.append(transform_points(T, xyz[ok]))
+        nus.append(nu[ok])
         positions.append(T[:3, 3])
     if not positions:
         return np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros((0, 3))
@@ -111,24 +112,20 @@ def near_path(points: np.ndarray, positions: np.ndarray, radius_m: float) -> np.
 def draw(points: np.ndarray, nu: np.ndarray, positions: np.ndarray, out: Path,
          title: str, colour_scale: str = 'quantile') -> None:
     """Top-down and side view, coloured by nu, written to `out` as PNG."""
-    import matplotlib
+    from matplotlib.colors import Normalize
 
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import BoundaryNorm, LinearSegmentedColormap, Normalize
+    from gft_odom.figures import frequency_colormap, label_quantile_colourbar, quantile_norm
 
+    plt = pyplot()
     if points.shape[0] > MAX_PLOT_POINTS:
         keep = np.random.default_rng(0).choice(points.shape[0], MAX_PLOT_POINTS, replace=False)
         points, nu = points[keep], nu[keep]
     has = np.isfinite(nu)
-    norm = Normalize(0.0, 1.0)
-    cmap = LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS)
-    if colour_scale == 'quantile' and has.sum() > 10:
-        edges = np.unique(np.quantile(nu[has], np.linspace(0.0, 1.0, 11)))
-        if edges.size >= 3:
-            cmap = LinearSegmentedColormap.from_list('gft_frequency', FREQUENCY_COLOURS,
-                                                     N=edges.size - 1)
-            norm = BoundaryNorm(edges, cmap.N)
+    norm, cmap, edges = Normalize(0.0, 1.0), frequency_colormap(), None
+    if colour_scale == 'quantile':
+        cmap, norm, edges = quantile_norm(nu[has])
+        if edges is None:
+            norm = Normalize(0.0, 1.0)
     # Draw low frequencies last so the sparse trunk/frame structure is not buried under canopy.
     order = np.flatnonzero(has)[np.argsort(-nu[has], kind='stable')]
     extent = np.ptp(points[:, :2], axis=0) if points.size else np.ones(2)
@@ -155,16 +152,14 @@ def draw(points: np.ndarray, nu: np.ndarray, positions: np.ndarray, out: Path,
     ax_side.set_title('side view')
     bar = fig.colorbar(scatter, ax=[ax_top, ax_side], shrink=0.6,
                        label='graph frequency nu = lambda / lambda_max')
-    if isinstance(norm, BoundaryNorm):
-        bar.set_ticks(norm.boundaries)
-        bar.set_ticklabels([f'{b:.3f}' for b in norm.boundaries])
-        bar.ax.set_title('deciles', fontsize=8)
+    label_quantile_colourbar(bar, edges)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=150)
     plt.close(fig)
 
 
 def run(args: argparse.Namespace) -> int:
+    """Merge the scans and draw their frequencies."""
     from gft_odom.core.spectral import SpectralFilter
     from gft_odom.io.bags import ScanBagReader
     from gft_odom.io.ground_truth import read_ground_truth
@@ -173,20 +168,30 @@ def run(args: argparse.Namespace) -> int:
     if args.scans < 1 or args.every < 1:
         from gft_odom.errors import ConfigError
         raise ConfigError(f'--scans and --every must be >= 1, got {args.scans}, {args.every}')
+    from gft_odom.errors import BagError
+
+    if bool(args.bags) == bool(args.pcd):
+        from gft_odom.errors import ConfigError
+        raise ConfigError('give either BAG... or --pcd DIR')
     config = load_config(args.config, args.overrides)
     spectral_filter = SpectralFilter.from_config(config.spectral)
     traj = read_ground_truth(args.gt)
-    with ScanBagReader(args.bags, args.topic) as reader:
-        points, nu, positions = merge_frequencies(reader, traj, spectral_filter, args.scans,
+    if args.pcd:
+        points, nu, positions = merge_frequencies(pcd_frequencies(args.pcd), traj, args.scans,
                                                   args.every)
-    if positions.shape[0] == 0:
-        from gft_odom.errors import BagError
-        raise BagError(f'no scans on {args.topic} in {", ".join(map(str, args.bags))}')
+        source = f'read from {args.pcd}'
+    else:
+        with ScanBagReader(args.bags, args.topic) as reader:
+            points, nu, positions = merge_frequencies(
+                scan_frequencies(reader, spectral_filter), traj, args.scans, args.every)
+        if positions.shape[0] == 0:
+            raise BagError(f'no scans on {args.topic} in {", ".join(map(str, args.bags))}')
+        s = config.spectral
+        source = (f'h={s.slice_thickness_m} m, tau={s.tau_m} m, sigma={s.sigma_m} m, '
+                  f'{s.method}, {s.solver}')
+    title = args.title or (f'graph frequency of {positions.shape[0]} merged scans '
+                           f'({points.shape[0]} points); {source}')
     s = config.spectral
-    title = args.title or (
-        f'graph frequency of {positions.shape[0]} merged scans ({points.shape[0]} points); '
-        f'h={s.slice_thickness_m} m, tau={s.tau_m} m, sigma={s.sigma_m} m, {s.method}, '
-        f'{s.solver}')
     near = near_path(points, positions, args.radius_m)
     out = Path(args.out)
     draw(points[near], nu[near], positions, out, title, args.colour_scale)

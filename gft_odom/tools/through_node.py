@@ -20,7 +20,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
-from gft_odom.core.geometry import invert_transform
+from gft_odom.core.constants import NODE_NAME, SCAN_PERIOD_S
+from gft_odom.core.geometry import base_to_sensor_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import GftOdomError
 from gft_odom.io.bags import ScanBagReader
@@ -31,9 +32,8 @@ from gft_odom.replay import ReplayResult, is_gps_ground_truth, summarize
 
 log = logging.getLogger(__name__)
 
-NODE_NAME = 'filter_odom_node'
 RESEND_AFTER_S = 2.0
-MIN_SEND_INTERVAL_S = 0.1  # a VLP-16 sweep period
+MIN_SEND_INTERVAL_S = SCAN_PERIOD_S  # a VLP-16 sweep period
 
 
 class NodeProcessError(GftOdomError):
@@ -208,10 +208,9 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         raise NodeProcessError(f'filter_odom_node answered none of the {len(statuses)} scans '
                                f'sent; its log: {node_log}')
     T_base_sensor = base_to_sensor(config)
-    T_sensor_base = invert_transform(T_base_sensor)
     base_poses = np.array([odometry[s] for s in stamps]).reshape(-1, 4, 4)
     base = Trajectory(np.array(stamps, dtype=np.int64), base_poses)
-    sensor = Trajectory(base.stamps_ns, T_sensor_base @ base.poses @ T_base_sensor)
+    sensor = Trajectory(base.stamps_ns, base_to_sensor_poses(base.poses, T_base_sensor))
     replay = ReplayResult(
         sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
         stage_s={'round_trip': np.asarray(latency)}, points_in=np.asarray(points_in),

@@ -17,6 +17,7 @@ from gft_odom.bands.masks import (
     parse_mask_key,
 )
 from gft_odom.core.spectral.bands import BandMask
+from gft_odom.core.spectral.filter import PointFrequencies, keep_mask
 from gft_odom.errors import ConfigError
 
 
@@ -43,12 +44,18 @@ def test_bad_mask_key_is_a_config_error():
         parse_mask_key('nonsense')
 
 
+def _frequencies(band: np.ndarray) -> PointFrequencies:
+    n = band.size
+    return PointFrequencies(nu=np.full(n, np.nan, np.float32), band=band, n_bands=4,
+                            isolated=band == 0, in_range=np.ones(n, bool),
+                            finite=np.ones(n, bool), n_slices=1)
+
+
 def test_fingerprint_equal_only_for_identical_kept_points():
     rng = np.random.default_rng(1)
     # Bands at B = 4 where band 4 is never used: {1,2,3} keeps the same points as all-pass.
-    bands = [rng.integers(0, 4, size=50).astype(np.int16) for _ in range(3)]
-    base = [b == 0 for b in bands]
-    fp = {m: keep_fingerprint(bands, base, BandMask(4, frozenset(m)))
+    freqs = [_frequencies(rng.integers(0, 4, size=50).astype(np.int16)) for _ in range(3)]
+    fp = {m: keep_fingerprint(keep_mask(f, BandMask(4, frozenset(m))) for f in freqs)
           for m in [(1, 2, 3), (1, 2, 3, 4), (1, 2), (1, 2, 4)]}
     assert fp[(1, 2, 3)] == fp[(1, 2, 3, 4)]
     assert fp[(1, 2)] == fp[(1, 2, 4)]

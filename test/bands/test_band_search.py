@@ -10,6 +10,7 @@ import pytest
 
 from gft_odom.bands.cache import SequenceCache, build_sequence_cache, load_or_build
 from gft_odom.bands.evaluate import BASELINE_KEY, evaluate_mask, run_sequence
+from gft_odom.bands.masks import exhaustive_masks
 from gft_odom.bands.run import run_band_search
 from gft_odom.bands.search import BandSearch, BandSearchConfig, SequenceSpec, prepare_caches
 from gft_odom.config import GftOdomConfig, with_values
@@ -78,7 +79,13 @@ def test_all_pass_mask_equals_the_unfiltered_baseline(train_cache):
     assert baseline['key'] == BASELINE_KEY
 
 
-def test_search_outputs_and_params_file(bags, tmp_path):
+def _distinct_kept_sets(cache: SequenceCache, masks) -> int:
+    flags = (CONFIG.spectral.keep_isolated, CONFIG.spectral.keep_out_of_range)
+    return len({b''.join(np.packbits(cache.keep(i, m, *flags)).tobytes()
+                         for i in range(len(cache))) for m in masks})
+
+
+def test_search_outputs_and_params_file(bags, train_cache, tmp_path):
     out = tmp_path / 'search'
     summary = run_band_search([bags[0]], CONFIG, out, BandSearchConfig(2, 3),
                               test=[bags[1]])
@@ -92,7 +99,12 @@ def test_search_outputs_and_params_file(bags, tmp_path):
     # The all-pass masks keep the same points at every B: evaluated once.
     dup = {r['key']: r.get('duplicate_of') for r in rows}
     assert dup['B3:111'] == 'B2:11'
-    assert summary['masks_evaluated'] <= 9
+    # One evaluation per distinct set of kept points (the all-pass twin is one of the repeats).
+    n_distinct = _distinct_kept_sets(train_cache, exhaustive_masks(2, 3))
+    assert n_distinct < 10 and summary['masks_evaluated'] == n_distinct
+    assert summary['masks_evaluated_this_run'] == n_distinct + 1  # and the baseline
+    assert summary['masks_evaluated'] == sum(
+        1 for r in rows if r['key'] != BASELINE_KEY and not r.get('duplicate_of'))
     # The chosen mask is the best in-sample one and reloads unchanged as a config.
     best = min((r for r in rows if r['key'] != BASELINE_KEY), key=lambda r: r['ate_rmse_m'])
     cfg = load_config(out / 'best_mask.yaml')
@@ -125,7 +137,13 @@ def test_killed_search_resumes_where_it_stopped(bags, tmp_path):
     search = BandSearch(caches, CONFIG, part, paths)
     assert len(search.log.rows) == 4
     search.exhaustive(2, 3)
-    assert search.n_evaluated == 11 - 4 - 1  # one all-pass duplicate is not run
+    # What the full run evaluated (duplicates of an earlier mask are not run), less what the
+    # stopped run had already evaluated.
+    def n_run(rows):
+        return sum(not json.loads(x).get('duplicate_of') for x in rows)
+
+    assert search.n_evaluated == n_run((full / 'results.jsonl').read_text().splitlines()) - (
+        n_run(lines))
     done = {json.loads(x)['key']: json.loads(x)
             for x in (part / 'results.jsonl').read_text().splitlines()}
     want = {json.loads(x)['key']: json.loads(x)
@@ -188,8 +206,7 @@ def ray_head(monkeypatch):
     monkeypatch.setenv('RAY_AUTH_MODE', 'token')
     monkeypatch.setenv('RAY_AUTH_TOKEN', secrets.token_hex(32))
     # Set before ray is imported: it reads the auth mode when it loads.
-    if importlib.util.find_spec('ray') is None:
-        pytest.skip('ray is not installed')
+    assert importlib.util.find_spec('ray') is not None, 'ray is a test dependency'
     with socket.socket() as s:
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]

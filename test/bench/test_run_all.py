@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+from helpers import load_script
 
 RUN_ALL = Path(__file__).resolve().parents[2] / 'benchmarks' / 'run_all.py'
 
 
 @pytest.fixture(scope='module')
 def run_all():
-    spec = importlib.util.spec_from_file_location('run_all', RUN_ALL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(RUN_ALL)
 
 
 def test_discovers_every_bench_script_and_the_odometry_bench(run_all):

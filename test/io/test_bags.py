@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import velodyne_columns
 
 from gft_odom.core.geometry import rpy_transform
 from gft_odom.errors import BagError, GroundTruthError
@@ -35,16 +36,8 @@ BAG_KINDS = {
 }
 
 
-def scan_columns(i: int, n: int = 300) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(i)
-    return {
-        'x': rng.normal(0, 10, n).astype(np.float32),
-        'y': rng.normal(0, 10, n).astype(np.float32),
-        'z': rng.normal(0, 1, n).astype(np.float32),
-        'intensity': rng.uniform(0, 100, n).astype(np.float32),
-        'ring': rng.integers(0, 16, n).astype(np.uint16),
-        'time': np.linspace(0.0, 0.1, n, dtype=np.float32),
-    }
+def scan_columns(i: int) -> dict[str, np.ndarray]:
+    return velodyne_columns(300, seed=i)
 
 
 def gps_pose(i: int) -> np.ndarray:

@@ -131,24 +131,18 @@ def test_many_stamps_out_of_order_are_an_error(tmp_path):
     ('time x y z\n1 2 3 4\n2 3 four 5\n', 'line 3'),
     ('1,2,3,4\n2,nan,3,4\n', 'line 2: non-finite'),
 ])
-def test_bad_csv_files(tmp_path, text, reason):
-    path = tmp_path / 'gt.csv'
-    path.write_text(text)
-    with pytest.raises(GroundTruthError, match=reason):
-        read_ground_truth(path)
+def test_bad_csv_files(refuses_file, text, reason):
+    refuses_file(read_ground_truth, text, GroundTruthError, reason, name='gt.csv')
 
 
-def test_unknown_or_missing_paths(tmp_path):
+def test_missing_path(tmp_path):
     with pytest.raises(GroundTruthError, match='does not exist'):
         read_ground_truth(tmp_path / 'gt.csv')
-    other = tmp_path / 'gt.json'
-    other.write_text('{}')
-    with pytest.raises(GroundTruthError, match='unknown format'):
-        read_ground_truth(other)
-    not_a_bag = tmp_path / 'gt.bag'
-    not_a_bag.write_text('nope')
-    with pytest.raises(GroundTruthError, match='gt.bag'):
-        read_ground_truth(not_a_bag)
+
+
+def test_unknown_formats(refuses_file):
+    refuses_file(read_ground_truth, '{}', GroundTruthError, 'unknown format', name='gt.json')
+    refuses_file(read_ground_truth, 'nope', GroundTruthError, 'gt.bag', name='gt.bag')
 
 
 def test_empty_bag_topic(tmp_path):

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers import velodyne_columns
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -50,18 +51,6 @@ def as_msg(blob: CloudBlob, stamp_ns: int = STAMP_NS, frame_id: str = 'velodyne'
         data=blob.data, is_dense=blob.is_dense)
     attrs.update(override)
     return SimpleNamespace(**attrs)
-
-
-def velodyne_columns(n: int, seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    return {
-        'x': rng.normal(0, 10, n).astype(np.float32),
-        'y': rng.normal(0, 10, n).astype(np.float32),
-        'z': rng.normal(0, 1, n).astype(np.float32),
-        'intensity': rng.uniform(0, 255, n).astype(np.float32),
-        'ring': rng.integers(0, 16, n).astype(np.uint16),
-        'time': rng.uniform(0, 0.1, n).astype(np.float32),
-    }
 
 
 # --- independent oracle: bytes packed with `struct`, not with the codec -----------------------

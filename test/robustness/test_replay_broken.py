@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+import os
 import random
 import shutil
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 from gft_odom.config import GftOdomConfig
+from gft_odom.errors import GftOdomError
 from gft_odom.io.bags import BagWriter
 from gft_odom.io.pointcloud2 import encode_cloud
 from gft_odom.replay import run_replay, write_results
@@ -163,7 +166,7 @@ def test_results_folder_appears_complete_or_not_at_all(replay_result, tmp_path, 
 
     monkeypatch.setattr(figures, 'plot_map', broken_plot)
     out = tmp_path / 'run'
-    with pytest.raises(Exception, match='No space left'):
+    with pytest.raises(GftOdomError, match='No space left'):
         write_results(replay, config, out, figures=True)
     assert _leftovers(tmp_path, 'run') == []
     monkeypatch.undo()
@@ -185,7 +188,7 @@ def test_existing_results_folder_keeps_its_other_files(replay_result, tmp_path, 
         raise OSError(5, 'Input/output error')
 
     monkeypatch.setattr(replay_module, 'write_tum', failing_tum)
-    with pytest.raises(Exception, match='Input/output'):
+    with pytest.raises(GftOdomError, match='Input/output'):
         write_results(replay, config, out, figures=False)
     assert (out / 'metrics.json').read_text() == '{"old": true}'  # old run untouched
     assert sorted(p.name for p in out.iterdir()) == ['metrics.json', 'notes.txt']
@@ -194,3 +197,19 @@ def test_existing_results_folder_keeps_its_other_files(replay_result, tmp_path, 
     assert (out / 'notes.txt').read_text() == 'mine'
     assert '"n_scans": %d' % N_SCANS in (out / 'metrics.json').read_text()
     assert _leftovers(tmp_path, 'run') == [out]
+
+
+@pytest.mark.parametrize('existing', [False, True], ids=['new_folder', 'existing_folder'])
+def test_results_get_the_modes_of_the_users_umask(replay_result, tmp_path, existing):
+    replay, config = replay_result
+    out = tmp_path / 'run'
+    if existing:
+        out.mkdir()
+    previous = os.umask(0o022)
+    try:
+        paths = write_results(replay, config, out, figures=True)
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o755  # not mkdtemp's private 0700
+    for path in paths.values():
+        assert stat.S_IMODE(path.stat().st_mode) == 0o644, path.name  # not mkstemp's 0600

@@ -2,53 +2,35 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
 
-def _load_publisher_module():
-    path = Path(__file__).with_name('cloud_publisher.py')
-    spec = importlib.util.spec_from_file_location('cloud_publisher', path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module, path
-
-
-def test_cloud_crosses_dds_between_processes(ros_env):
-    import rclpy
+def test_cloud_crosses_dds_between_processes(ros_env, ros_node):
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
 
     from gft_odom.io.pointcloud2 import decode_scan
 
-    publisher_module, publisher_path = _load_publisher_module()
+    publisher_path = Path(__file__).with_name('cloud_publisher.py')
+    publisher_module = load_script(publisher_path)
     seed, n = 7, 30_000
-    expected = publisher_module.make_columns(seed, n)
+    expected = publisher_module.velodyne_columns(n, seed)
     proc = subprocess.Popen([sys.executable, str(publisher_path), str(seed), str(n)],
                             env=ros_env)
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('cloud_listener', context=context)
+    node, spin_until = ros_node
     received: list[PointCloud2] = []
     node.create_subscription(PointCloud2, 'points', received.append, qos_profile_sensor_data)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
     try:
-        deadline = time.monotonic() + 30.0
-        while not received and time.monotonic() < deadline and proc.poll() is None:
-            executor.spin_once(timeout_sec=0.1)
+        spin_until(lambda: received or proc.poll() is not None, 30.0)
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
         proc.terminate()
         proc.wait(timeout=10)
     assert received, 'no PointCloud2 arrived over DDS within 30 s'

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import pytest
 
 from gft_odom.tools.cli import main
-from gft_odom.tools.cmd_spectrum import pose_at
 
 
 @pytest.fixture(scope='module')
@@ -40,18 +38,3 @@ def test_spectrum_reports_bad_inputs_as_exit_code_1(sim_run, tmp_path):
     assert main(['spectrum', str(sim_run.bag_path), '--gt', str(sim_run.gt_tum_path),
                  '--out', str(tmp_path / 'b.png'), '--set', 'spectral.tau_m=-1.0']) == 1
     assert not (tmp_path / 'b.png').exists()
-
-
-def test_pose_at_interpolates_and_refuses_far_stamps():
-    from gft_odom.errors import GroundTruthError
-
-    stamps = np.array([0, 1_000_000_000], dtype=np.int64)
-    poses = np.repeat(np.eye(4)[None], 2, axis=0)
-    poses[1, :3, 3] = [2.0, 0.0, 0.0]
-    c, s = np.cos(0.5), np.sin(0.5)
-    poses[1, :3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    T = pose_at(stamps, poses, 500_000_000)
-    np.testing.assert_allclose(T[:3, 3], [1.0, 0.0, 0.0])
-    np.testing.assert_allclose(np.arctan2(T[1, 0], T[0, 0]), 0.25)
-    with pytest.raises(GroundTruthError, match='outside'):
-        pose_at(stamps, poses, 3_000_000_000)

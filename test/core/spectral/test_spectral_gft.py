@@ -38,6 +38,51 @@ def test_inverse_gft_of_gft_is_identity_and_parseval_holds(seed):
     assert lam[0] >= 0.0 and np.all(np.diff(lam) >= -1e-12)
 
 
+def path_graph_spectrum(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Closed form for the path graph P_n (unit weights), independent of any eigensolver:
+    lambda_k = 2 - 2 cos(pi k / n), v_k(m) = cos(pi k (m + 1/2) / n), normalised."""
+    k = np.arange(n)
+    lam = 2.0 - 2.0 * np.cos(np.pi * k / n)
+    V = np.cos(np.pi * np.outer(np.arange(n) + 0.5, k) / n)
+    return lam, V / np.linalg.norm(V, axis=0)
+
+
+def path_laplacian(n: int) -> np.ndarray:
+    W = np.diag(np.ones(n - 1), 1)
+    W = W + W.T
+    return np.diag(W.sum(1)) - W
+
+
+def test_fourier_basis_of_a_path_graph_matches_the_closed_form():
+    n = 16
+    lam, U = fourier_basis(path_laplacian(n))
+    lam_ref, V = path_graph_spectrum(n)
+    np.testing.assert_allclose(lam, lam_ref, atol=1e-12)
+    # Simple eigenvalues: each eigenvector is the closed-form one up to its sign.
+    np.testing.assert_allclose(np.abs(np.sum(U * V, axis=0)), np.ones(n), atol=1e-10)
+    # The GFT of a closed-form eigenvector is (+-) a unit spike at its index.
+    f_hat = gft(U, V[:, 5])
+    np.testing.assert_allclose(np.abs(f_hat), np.eye(n)[5], atol=1e-10)
+
+
+def test_band_responses_of_a_path_graph_match_the_closed_form():
+    # X = v_2 + 3 v_13 on P_16: with B = 4 bands on nu = lambda / lambda_max, v_2 lies in band
+    # 1 and v_13 in band 4, so band 1 responds with v_2^2, band 4 with 9 v_13^2, bands 2-3 not.
+    n, n_bands = 16, 4
+    lam_ref, V = path_graph_spectrum(n)
+    nu = lam_ref / lam_ref[-1]
+    assert nu[2] < 0.25 and nu[13] >= 0.75
+    X = V[:, 2] + 3.0 * V[:, 13]
+    lam, U = fourier_basis(path_laplacian(n))
+    r = band_responses_exact(lam, U, X, lam[-1], n_bands)
+    expected = np.zeros((n, n_bands))
+    expected[:, 0] = V[:, 2] ** 2
+    expected[:, 3] = 9.0 * V[:, 13] ** 2
+    np.testing.assert_allclose(r, expected, atol=1e-10)
+    _, band = signal_frequency(r)
+    np.testing.assert_array_equal(band, np.where(V[:, 2] ** 2 > 9.0 * V[:, 13] ** 2, 1, 4))
+
+
 def test_band_responses_split_the_signal():
     L, X = small_graph(3)
     lam, U = fourier_basis(L)
@@ -62,11 +107,7 @@ def test_frequencies_do_not_change_when_eigenvector_signs_flip():
 def test_dominant_frequency_of_a_path_graph():
     # On a path, the end points carry the most weight of the highest and of low eigenvectors;
     # every nu is a normalised eigenvalue in [0, 1].
-    n = 12
-    W = np.diag(np.ones(n - 1), 1)
-    W = W + W.T
-    L = np.diag(W.sum(1)) - W
-    lam, U = fourier_basis(L)
+    lam, U = fourier_basis(path_laplacian(12))
     nu = dominant_frequency(lam, U, lam[-1])
     assert np.all((nu >= 0.0) & (nu <= 1.0))
     assert set(np.round(nu, 12)) <= set(np.round(lam / lam[-1], 12))

@@ -1,0 +1,203 @@
+"""Frequency definitions: exact LDOS moments, KPM convergence, scan-line graph, registry."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from gft_odom.core.spectral import BandMask, SpectralConfig, SpectralFilter
+from gft_odom.core.spectral.bands import band_of_nu
+from gft_odom.core.spectral.frequency import (
+    REGISTRY,
+    FrequencyDefinition,
+    NodeFrequencies,
+    SpectralGraph,
+    ldos_moments,
+    make_definition,
+    register,
+)
+from gft_odom.core.spectral.graph import GraphLaplacian, scan_line_edges, scan_line_graph
+from gft_odom.core.spectral.slicing import Slices
+from gft_odom.errors import ConfigError
+
+
+def config(**overrides) -> SpectralConfig:
+    """SpectralConfig with `overrides`; the mask follows `n_bands` (all-pass)."""
+    n_bands = overrides.get('n_bands', SpectralConfig().n_bands)
+    settings = {'band_mask': tuple(range(1, n_bands + 1)), **overrides}
+    return dataclasses.replace(SpectralConfig(), **settings)
+
+
+def random_graph(n: int, density: float, seed: int) -> sp.csr_matrix:
+    """A symmetric random weighted graph with a zero diagonal."""
+    rng = np.random.default_rng(seed)
+    upper = sp.random(n, n, density=density, random_state=rng, format='csr')
+    upper = sp.triu(upper, k=1)
+    return (upper + upper.T).tocsr()
+
+
+def exact_graph(W: sp.csr_matrix) -> tuple[SpectralGraph, np.ndarray, np.ndarray]:
+    """A one-block SpectralGraph with the exact lambda_max, and L's eigen-decomposition."""
+    n = W.shape[0]
+    L = GraphLaplacian(W)
+    lam, U = np.linalg.eigh(L.toarray())
+    lam = np.maximum(lam, 0.0)
+    order = np.arange(n)
+    sl = Slices(order=order, starts=np.array([0, n]), slice_of_point=np.zeros(n, np.int64),
+                in_range=np.ones(n, bool), z_bottom_m=np.zeros(1))
+    graph = SpectralGraph(n_points=n, sl=sl, node_of_point=order, starts=np.array([0, n]),
+                          node_block=np.zeros(n, np.int64), L=L,
+                          isolated_nodes=np.diff(W.indptr) == 0, lmax=np.array([lam[-1]]),
+                          finite=np.ones(n, bool))
+    return graph, lam, U
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_ldos_moments_equal_the_eigendecomposition(seed):
+    W = random_graph(40 + 10 * seed, 0.15, seed)
+    graph, lam, U = exact_graph(W)
+    nu_l = lam / lam[-1]
+    density = U ** 2  # rho_m(lambda_l) = v_l(m)^2
+    mean, second = ldos_moments(graph.L, graph.node_lmax())
+    np.testing.assert_allclose(mean, density @ nu_l, atol=1e-9)
+    np.testing.assert_allclose(second, density @ nu_l ** 2, atol=1e-9)
+    node = make_definition(config(method='ldos_mean')).assign(
+        graph, 10)
+    np.testing.assert_allclose(node.nu, density @ nu_l, atol=1e-9)
+    np.testing.assert_array_equal(node.band, band_of_nu(density @ nu_l, 10))
+    spread = make_definition(config(method='ldos_spread'))
+    spread.prepare(graph)
+    variance = density @ nu_l ** 2 - (density @ nu_l) ** 2
+    np.testing.assert_allclose(spread.assign(graph, 10).nu, 2.0 * np.sqrt(variance), atol=1e-7)
+
+
+def test_kpm_band_energies_converge_to_the_exact_ldos():
+    W = random_graph(120, 0.06, 7)
+    graph, lam, U = exact_graph(W)
+    n_bands = 4
+    eig_band = band_of_nu(lam / lam[-1], n_bands)
+    exact = np.stack([np.sum(U[:, eig_band == b] ** 2, axis=1)
+                      for b in range(1, n_bands + 1)], axis=1)
+    errors = []
+    for order, probes in [(5, 2), (20, 16), (80, 256)]:
+        cfg = config(method='kpm', chebyshev_order=order,
+                                  kpm_probes=probes)
+        definition = make_definition(cfg)
+        definition.prepare(graph)
+        errors.append(float(np.mean(np.abs(definition.assign(graph, n_bands).response
+                                           - exact))))
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.05
+
+
+def ring_cloud(n_rings: int = 4, n_azimuth: int = 36, radius_m: float = 5.0):
+    """Points on horizontal circles (one per ring) at 10 deg azimuth steps, shuffled."""
+    az = np.deg2rad(np.arange(n_azimuth) * (360.0 / n_azimuth)) - np.pi + 1e-3
+    ring = np.repeat(np.arange(n_rings), n_azimuth)
+    azimuth = np.tile(az, n_rings)
+    xyz = np.column_stack([radius_m * np.cos(azimuth), radius_m * np.sin(azimuth),
+                           0.1 * ring.astype(float)])
+    perm = np.random.default_rng(0).permutation(xyz.shape[0])
+    return xyz[perm], ring[perm], azimuth[perm]
+
+
+def test_scan_line_graph_joins_azimuth_and_ring_neighbours():
+    xyz, ring, azimuth = ring_cloud()
+    step = 2.0 * np.pi / 36
+    i, j = scan_line_edges(xyz, ring, max_azimuth_gap_rad=0.5 * step)
+    pairs = {tuple(sorted(p)) for p in zip(i.tolist(), j.tolist())}
+    assert len(pairs) == len(i)  # every edge once
+    expected = set()
+    col = np.round((azimuth + np.pi - 1e-3) / step).astype(int) % 36
+    index = {(int(r), int(c)): k for k, (r, c) in enumerate(zip(ring, col))}
+    for (r, c), k in index.items():
+        expected.add(tuple(sorted((k, index[(r, (c + 1) % 36)]))))  # along the ring, closed
+        if r + 1 < 4:
+            expected.add(tuple(sorted((k, index[(r + 1, c)]))))  # the ring above
+    assert pairs == expected
+    W, order = scan_line_graph(xyz, ring, tau_m=10.0, sigma_m=0.5,
+                               max_azimuth_gap_rad=0.5 * step)
+    ring = ring[order]  # W's nodes are in scan-line order
+    assert (W != W.T).nnz == 0 and W.diagonal().max() == 0.0
+    # Each point: two ring neighbours, plus one per adjacent ring (1 or 2 of them).
+    degree_count = np.diff(W.indptr)
+    np.testing.assert_array_equal(degree_count, 2 + (ring > 0).astype(int) + (ring < 3))
+    # tau cuts the edges longer than it: the ring steps of 0.87 m go, the 0.1 m rises stay.
+    W_cut, order_cut = scan_line_graph(xyz[order], ring, tau_m=0.5, sigma_m=0.5,
+                                       max_azimuth_gap_rad=0.5 * step)
+    np.testing.assert_array_equal(order_cut, np.arange(len(ring)))  # already in order
+    np.testing.assert_array_equal(np.diff(W_cut.indptr),
+                                  (ring > 0).astype(int) + (ring < 3))
+
+
+def test_scan_line_filter_uses_ring_and_falls_back_without_it(caplog):
+    xyz, ring, _ = ring_cloud(n_azimuth=360)
+    filt = SpectralFilter(config(graph='scan_line'))
+    with_ring = filt.frequencies(xyz, ring=ring)
+    assert with_ring.n_slices == 1
+    without = filt.frequencies(xyz)
+    assert without.n_slices > 1  # the slice graph
+    assert 'no `ring` field' in caplog.text
+
+
+@pytest.mark.parametrize('method', sorted(REGISTRY))
+def test_every_definition_gives_bands_that_masks_select_exactly(method):
+    xyz, ring, _ = ring_cloud(n_rings=8, n_azimuth=180)
+    xyz = xyz + np.random.default_rng(1).normal(0.0, 0.03, xyz.shape)
+    cfg = config(method=method, n_bands=5, tau_m=0.3,
+                              solver='exact' if method == 'dominant' else 'chebyshev',
+                              graph='slice' if method == 'dominant' else 'scan_line')
+    filt = SpectralFilter(cfg)
+    freqs = filt.frequencies(xyz, ring=ring)
+    has = freqs.band > 0
+    assert np.all((freqs.nu[has] >= 0.0) & (freqs.nu[has] <= 1.0))
+    assert np.all(np.isnan(freqs.nu[~has]))
+    for b in range(1, 6):
+        keep = filt.keep_mask(freqs, BandMask(5, frozenset({b})))
+        np.testing.assert_array_equal(keep & has, freqs.band == b)
+
+
+def test_a_new_definition_is_one_class():
+    @register
+    class DegreeRank(FrequencyDefinition):
+        name = 'test_degree_rank'
+
+        def assign(self, graph, n_bands):
+            rank = np.argsort(np.argsort(graph.L.degree)) / max(graph.n_nodes - 1, 1)
+            return NodeFrequencies(rank, band_of_nu(rank, n_bands))
+
+    try:
+        cfg = config(method='test_degree_rank', n_bands=4)
+        xyz, ring, _ = ring_cloud()
+        freqs = SpectralFilter(cfg).frequencies(xyz, ring=ring)
+        assert set(np.unique(freqs.band)) <= {0, 1, 2, 3, 4}
+        with pytest.raises(ConfigError, match='method'):
+            dataclasses.replace(cfg, method='not_registered').validate()
+    finally:
+        REGISTRY.pop('test_degree_rank')
+
+
+
+def test_one_block_lanczos_is_close_to_the_exact_lambda_max():
+    from gft_odom.core.spectral.chebyshev import lambda_max_lanczos
+    W = random_graph(300, 0.02, 11)
+    L = GraphLaplacian(W)
+    exact = np.linalg.eigvalsh(L.toarray())[-1]
+    one = lambda_max_lanczos(L, np.array([0, 300]), n_iter=30)
+    assert one.shape == (1,)
+    assert exact * 0.999 <= one[0] <= exact * 1.02
+
+
+def test_scan_line_laplacian_degrees_are_the_row_sums_with_empty_rows():
+    from gft_odom.core.spectral.graph import scan_line_laplacian
+    xyz, ring, _ = ring_cloud()
+    # Far-away points on their own rings: rows with no edge, some sorted last.
+    xyz = np.concatenate([xyz, [[50.0, 0.0, 0.0], [0.0, 60.0, 3.0]]])
+    ring = np.concatenate([ring, [20, 21]])
+    L, order = scan_line_laplacian(xyz, ring, tau_m=1.0, sigma_m=0.5)
+    np.testing.assert_allclose(L.degree, np.asarray(L.W.sum(axis=1)).ravel(), atol=1e-12)
+    assert np.sum(L.degree == 0.0) == 2
+    assert sorted(order.tolist()) == list(range(len(xyz)))
