@@ -269,7 +269,7 @@ class OdometryPipeline:
         T_world_sensor = self.registration.T_world_sensor.copy()
         return FrameResult(
             stamp_ns=int(scan.stamp_ns), T_world_sensor=T_world_sensor,
-            T_odom_base=self.T_base_sensor @ T_world_sensor @ self.T_sensor_base,
+            T_odom_base=sensor_to_base_poses(T_world_sensor, self.T_base_sensor),
             covariance=np.diag(self.registration.fallback_var),
             status=f'rejected_{rejection.reason}', n_points_in=len(scan), n_points_kept=0,
             filtered=scan.select(np.zeros(0, dtype=np.int64)), nu=None, band=None,
