@@ -12,7 +12,7 @@ import pytest
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.params_file import load_config, packaged_params_file, write_params_file
 from gft_odom.replay import run_replay
-from gft_odom.tools.through_node import replay_through_node
+from gft_odom.ros.through_node import replay_through_node
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
