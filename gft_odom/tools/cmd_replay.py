@@ -7,8 +7,6 @@ import json
 import logging
 from pathlib import Path
 
-from gft_odom.params_file import load_config
-from gft_odom.replay import run_replay, write_results
 from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -16,8 +14,9 @@ log = logging.getLogger(__name__)
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     """--config / --set, shared by every sub-command that runs the pipeline."""
-    parser.add_argument('--config', metavar='YAML',
-                        help='ROS params file (as for filter_odom_node --params-file)')
+    parser.add_argument('--config', '--params-file', dest='config', metavar='YAML',
+                        help='ROS params file, as filter_odom_node --params-file takes (a '
+                             "results folder's config.yaml, best_mask.yaml, config/*.yaml)")
     parser.add_argument('--set', dest='overrides', action='append', default=[],
                         metavar='SECTION.KEY=VALUE',
                         help='override one parameter, e.g. --set spectral.band_mask=[1,9,10]')
@@ -48,6 +47,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from gft_odom.params_file import load_config
+    from gft_odom.replay import run_replay, write_results
+
     overrides = list(args.overrides)
     if args.no_filter:
         overrides.append('pipeline.use_spectral_filter=false')
