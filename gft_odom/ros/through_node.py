@@ -193,7 +193,10 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                     statuses.append('no_answer')
                 if progress is not None:
                     progress(i + 1, total)
-            spin_until(lambda: False, 0.5)  # let the last filtered cloud / path arrive
+            # The last filtered cloud, and the Path (the node sends it once a second).
+            spin_until(lambda: False, 0.5)
+            path_length = min(len(stamps), config.node.path_max_length)
+            spin_until(lambda: bool(last_path) and len(last_path[0].poses) >= path_length, 3.0)
             skipped = getattr(reader, 'skipped', 0)
         failed = not stamps
     finally:
