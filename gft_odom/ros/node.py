@@ -20,6 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -116,9 +117,12 @@ class FilterOdomNode(Node):
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
         self.create_subscription(PointCloud2, 'points', self._on_cloud, input_qos)
-        self.create_timer(SUMMARY_PERIOD_S, self._log_summary)
-        self.create_timer(PATH_PERIOD_S, self._publish_path)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
+        # Wall-clock timers: with use_sim_time the ROS clock only moves with /clock (a lockstep
+        # replay advances it 0.1 s per scan), and these are about the process, not the data.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(SUMMARY_PERIOD_S, self._log_summary, clock=steady)
+        self.create_timer(PATH_PERIOD_S, self._publish_path, clock=steady)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=steady)
         self.get_logger().info(
             f'ready: filter {"on" if self.pipeline.use_filter else "off (or all-pass)"} '
             f'(n_bands={self.config.spectral.n_bands}, band_mask='
