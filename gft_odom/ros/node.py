@@ -70,12 +70,13 @@ class FilterOdomNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         # A misspelled key in the params file would otherwise be ignored without a word.
         check_overrides(self._parameter_overrides)
-        self._log_handler = forward_python_logging(self.get_logger(), WARN_PERIOD_S)
         for name, value in flatten(GftOdomConfig()).items():
             self.declare_parameter(name, _ros_value(value), descriptor(name))
         # Raises ConfigError with the reason when the params file holds an invalid value.
         self.config = with_values(GftOdomConfig(), {
             name: self.get_parameter(name).value for name in flatten(GftOdomConfig())})
+        # Once nothing can refuse the start any more (destroy_node undoes it).
+        self._log_handler = forward_python_logging(self.get_logger(), WARN_PERIOD_S)
         self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -340,10 +341,10 @@ def _interrupt(signum, frame) -> None:
 def main(args=None) -> None:
     node = None
     try:
-        # Our own SIGINT/SIGTERM handling: rclpy's would shut the context down before the final
-        # counts are logged ("Failed to publish log message to rosout").
         check_params_files(sys.argv if args is None else args)
         profile = use_large_message_profile()
+        # Our own SIGINT/SIGTERM handling: rclpy's would shut the context down before the final
+        # counts are logged ("Failed to publish log message to rosout").
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         signal.signal(signal.SIGINT, _interrupt)
         signal.signal(signal.SIGTERM, _interrupt)
