@@ -6,7 +6,6 @@ import json
 import subprocess
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -117,7 +116,9 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
     for key in ('PYTHONPATH', 'AMENT_PREFIX_PATH'):
         monkeypatch.setenv(key, env[key])  # as after `source install/setup.bash`
     out = tmp_path / 'through_node'
-    before = set(Path(tempfile.gettempdir()).glob('gft_odom_node_*'))
+    temp = tmp_path / 'tmp'  # a private temp dir: other runs on this host use /tmp too
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, 'tempdir', str(temp))
     assert main(['replay', str(orchard_bag.bag_path), '--gt', str(orchard_bag.gt_csv_path),
                  '--out', str(out), '--through-node', '--max-scans', '5', '--quiet',
                  '--config', str(packaged_params_file('paper_mode_gft.yaml'))]) == 0
@@ -129,4 +130,4 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
     assert (out / 'trajectory.png').is_file()
     # The node's log goes with the results; no temporary folder is left behind.
     assert 'final counts:' in (out / 'node.log').read_text()
-    assert set(Path(tempfile.gettempdir()).glob('gft_odom_node_*')) <= before
+    assert not list(temp.glob('gft_odom_node_*'))
