@@ -92,7 +92,7 @@ def check_overrides(override_names, known=None) -> None:
             continue
         close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
         hint = f'; did you mean {close[0]!r}?' if close else ''
-        raise ConfigError(f'unknown parameter {name!r} in the params file{hint}')
+        raise ConfigError(f'unknown parameter {name!r} (params file or -p){hint}')
 
 
 def check_params_files(argv) -> None:

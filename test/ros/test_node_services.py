@@ -21,7 +21,7 @@ def _env(installed_node, ros_env):
 
 @pytest.mark.parametrize('content, expected', [
     ('/**:\n  ros__parameters:\n    spectral:\n      tua_m: 0.3\n',
-     "unknown parameter 'spectral.tua_m' in the params file; did you mean 'spectral.tau_m'?"),
+     "unknown parameter 'spectral.tua_m' (params file or -p); did you mean 'spectral.tau_m'?"),
     (None, 'No such file or directory'),
     ('/**:\n  ros__parameters: [\n', 'is not valid YAML'),
 ])
