@@ -79,13 +79,13 @@ def main(argv=None) -> int:
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2, PointField
+    from sensor_msgs.msg import PointCloud2
 
     from gft_odom.io.bags import ScanBagReader
     from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
+    from gft_odom.ros.through_node import ros_message_from_bag, stop_node_process
     from gft_odom.sim.simulator import SimConfig
     from gft_odom.sim.writer import simulate_to_bag
-    from gft_odom.tools.through_node import ros_message_from_bag, stop_node_process
 
     work = Path(tempfile.mkdtemp(prefix='gft_soak_'))
     print(f'simulating {args.scans} scans, building the node in {work} ...', flush=True)
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
                           config=SimConfig(azimuth_step_deg=args.azimuth_step_deg),
                           topdown_png=False)
     with ScanBagReader([sim.bag_path]) as reader:
-        messages = [ros_message_from_bag(raw, PointCloud2, PointField)
+        messages = [ros_message_from_bag(raw)
                     for _, raw in reader.iter_messages()]
     points_per_scan = float(np.mean([m.width * m.height for m in messages]))
     exe, env = build_node(work / 'ws')
