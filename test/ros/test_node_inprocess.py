@@ -179,3 +179,27 @@ def test_check_params_files_says_what_is_wrong(tmp_path):
     broken.write_text('/**:\n  ros__parameters: [\n')
     with pytest.raises(ConfigError, match='not valid YAML'):
         check_params_files(['--ros-args', '--params-file', str(broken)])
+
+
+def test_default_node_publishes_every_point_with_its_frequency_and_band(make_node, scans):
+    """Spectral engine v2: the package defaults compute the frequencies on every scan."""
+    from gft_odom.core.spectral import SpectralFilter
+    from gft_odom.io.pointcloud2 import decode_fields, decode_scan
+    from gft_odom.pipeline import OdometryPipeline
+    node = make_node()
+    clouds = Recorder()
+    clouds.get_subscription_count = lambda: 1  # someone listens: the node publishes
+    node.cloud_pub = clouds
+    for msg in scans[:3]:
+        node._on_cloud(msg)
+    assert len(clouds.sent) == 3
+    reference = OdometryPipeline(node.config)
+    spectral = SpectralFilter(node.config.spectral)
+    for msg, out in zip(scans, clouds.sent):
+        fields = decode_fields(out)
+        assert {'frequency', 'band'} <= set(fields)
+        cropped = reference._crop(decode_scan(msg))
+        assert fields['band'].shape[0] == len(cropped)  # all-pass: every point kept
+        expected = spectral.scan_frequencies(cropped)
+        np.testing.assert_array_equal(fields['band'], expected.band.astype(np.uint8))
+        assert len(np.unique(fields['band'])) >= 4  # the bands are used, not one
