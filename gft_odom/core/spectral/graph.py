@@ -97,7 +97,7 @@ def components(W: sp.spmatrix) -> tuple[int, np.ndarray]:
 # two stable 16-bit sorts (numpy's radix sort) order the points by (ring, azimuth).
 _AZIMUTH_BINS = 65535
 # Components solved first in ScanLineLaplacian.lambda_max (the rest are usually ruled out).
-_EXACT_FIRST_COMPONENTS = 32
+_EXACT_FIRST_COMPONENTS = 8
 
 
 def scan_line_order(points_xyz: np.ndarray, ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
