@@ -112,7 +112,7 @@ def main(argv=None) -> int:
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from scipy.spatial.transform import Rotation
-    from sensor_msgs.msg import PointCloud2, PointField
+    from sensor_msgs.msg import PointCloud2
 
     from gft_odom.config import GftOdomConfig
     from gft_odom.core.geometry import invert_transform
@@ -120,9 +120,9 @@ def main(argv=None) -> int:
     from gft_odom.io.tum import read_tum
     from gft_odom.pipeline import base_to_sensor
     from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
+    from gft_odom.ros.through_node import ros_message_from_bag, stop_node_process
     from gft_odom.sim.simulator import ScanSimulator, SimConfig
     from gft_odom.sim.writer import simulate_to_bag
-    from gft_odom.tools.through_node import ros_message_from_bag, stop_node_process
 
     work = Path(tempfile.mkdtemp(prefix='gft_soak_'))
     sim_config = SimConfig(azimuth_step_deg=args.azimuth_step_deg)
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     sim = simulate_to_bag(work / 'sim', scenario=scenario, n_scans=n_scans, seed=101,
                           config=sim_config, topdown_png=False)
     with ScanBagReader([sim.bag_path]) as reader:
-        messages = [ros_message_from_bag(raw, PointCloud2, PointField)
+        messages = [ros_message_from_bag(raw)
                     for _, raw in reader.iter_messages()]
     T_base_sensor = base_to_sensor(GftOdomConfig())
     truth_base = read_tum(sim.gt_tum_path).poses @ invert_transform(T_base_sensor)

@@ -236,8 +236,11 @@ class OdometryPipeline:
             if freqs is None:
                 freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
             keep = self._precomputed_keep(cropped, freqs)
-            kept = cropped.select(keep)
-            nu, band = freqs.nu[keep], freqs.band[keep]
+            if keep.all():  # all-pass: no copy of the scan
+                kept, nu, band = cropped, freqs.nu, freqs.band
+            else:
+                kept = cropped.select(keep)
+                nu, band = freqs.nu[keep], freqs.band[keep]
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
         flat_std_m = thinnest_axis_std_m(kept.points_xyz)

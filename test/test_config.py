@@ -38,7 +38,7 @@ def test_every_params_file_loads_with_known_keys_and_types(path):
 MODE_OVERLAYS = {
     'paper_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (3, 4),
                             'spectral.method': 'signal', 'spectral.graph': 'slice',
-                            'spectral.lanczos_iterations': 30, 'registration.mode': 'paper'},
+                            'registration.mode': 'paper'},
     'default_mode_gft.yaml': {'spectral.n_bands': 3, 'spectral.band_mask': (1,)},
 }
 

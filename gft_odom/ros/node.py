@@ -1,25 +1,33 @@
 """`filter_odom_node`: VLP-16 PointCloud2 in, graph-frequency filtered odometry out.
 
 Subscribes `points` (remap it to `/velodyne_points`) with sensor-data QoS; publishes
-`~/filtered_points`, `~/odometry` (odom -> base_link, REP 105) and `~/path`. Parameters are
-declared from the `GftOdomConfig` dataclasses, so their defaults live in one place. Bad input is
-logged (rate-limited) and skipped: the node keeps running.
+`~/filtered_points`, `~/odometry` (odom -> base_link, REP 105), `~/path`, `/tf` and
+`/diagnostics`; serves `~/reset`. Parameters are declared from the `GftOdomConfig` dataclasses,
+so their defaults live in one place. Bad input is logged (rate-limited) and skipped: the node
+keeps running.
 """
 
 from __future__ import annotations
 
 import collections
+import signal
+import sys
 import time
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
 from gft_odom.core.constants import NODE_NAME, NS_PER_S
@@ -27,13 +35,27 @@ from gft_odom.errors import GftOdomError
 from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
 from gft_odom.pipeline import FrameResult, OdometryPipeline
 from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg, transform_msg
+from gft_odom.ros.dds import use_large_message_profile
+from gft_odom.ros.diagnostics import OdometryDiagnostics, diagnostic_array
+from gft_odom.ros.log_bridge import forward_python_logging, stop_forwarding
+from gft_odom.ros.parameters import (
+    check_overrides,
+    check_params_files,
+    descriptor,
+    is_startup_only,
+)
+from gft_odom.ros.tf import make_tf_publisher
 
-# Sections whose values are only read when the pipeline starts (a change needs a restart).
-STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame', 'evaluation.',
-                         'node.base_to_sensor', 'node.publish_tf', 'ground_truth.',
-                         'node.input_queue_depth', 'node.input_reliable')
 WARN_PERIOD_S = 5.0
 SUMMARY_PERIOD_S = 10.0
+DIAGNOSTICS_PERIOD_S = 1.0
+# The Path holds up to node.path_max_length poses: sent at most this often, and only to
+# subscribers, so its cost per scan stays bounded (it was 38 ms a scan at 5 000 poses).
+PATH_PERIOD_S = 1.0
+# Stamp differences kept to estimate the sensor period (5, 10 or 20 Hz VLP-16).
+PERIOD_SAMPLES = 21
+# A stamp this far from the clock is not lag but a clock mismatch (a bag without --clock).
+CLOCK_MISMATCH_S = 60.0
 
 
 def _ros_value(value):
@@ -46,12 +68,15 @@ class FilterOdomNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
+        # A misspelled key in the params file would otherwise be ignored without a word.
+        check_overrides(self._parameter_overrides)
         for name, value in flatten(GftOdomConfig()).items():
-            self.declare_parameter(name, _ros_value(value),
-                                   ParameterDescriptor(description=f'gft_odom.config: {name}'))
+            self.declare_parameter(name, _ros_value(value), descriptor(name))
         # Raises ConfigError with the reason when the params file holds an invalid value.
         self.config = with_values(GftOdomConfig(), {
             name: self.get_parameter(name).value for name in flatten(GftOdomConfig())})
+        # Once nothing can refuse the start any more (destroy_node undoes it).
+        self._log_handler = forward_python_logging(self.get_logger(), WARN_PERIOD_S)
         self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -66,9 +91,14 @@ class FilterOdomNode(Node):
         self.last_stamp_ns: int | None = None
         self.last_received_stamp_ns: int | None = None
         self.last_frame_id: str | None = None
+        self._stamp_steps_ns: collections.deque[int] = collections.deque(maxlen=PERIOD_SAMPLES)
+        self._path_dirty = False
 
-        self.cloud_pub = self.create_publisher(PointCloud2, '~/filtered_points',
-                                               qos_profile_sensor_data)
+        # Reliable: matches both reliable (RViz's default) and best-effort subscribers; keep
+        # last 1, so a slow subscriber costs the newest cloud only.
+        self.cloud_pub = self.create_publisher(
+            PointCloud2, '~/filtered_points',
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
         # Transient local (latched): a subscriber that joins late (a recorder, RViz, a replay
         # harness whose reader is still being matched) still gets the recent poses and the
         # path. Volatile subscribers are compatible with it.
@@ -77,7 +107,10 @@ class FilterOdomNode(Node):
                                               QoSProfile(depth=50, durability=latched))
         self.path_pub = self.create_publisher(Path, '~/path',
                                               QoSProfile(depth=1, durability=latched))
-        self.tf_broadcaster = self._make_tf_broadcaster()
+        self.tf_pub = make_tf_publisher(self) if self.config.node.publish_tf else None
+        self.diagnostics = OdometryDiagnostics()
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_service(Trigger, '~/reset', self._on_reset)
         input_qos = QoSProfile(depth=self.config.node.input_queue_depth,
                                reliability=(ReliabilityPolicy.RELIABLE
                                             if self.config.node.input_reliable
@@ -85,29 +118,23 @@ class FilterOdomNode(Node):
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
         self.create_subscription(PointCloud2, 'points', self._on_cloud, input_qos)
-        self.create_timer(SUMMARY_PERIOD_S, self._log_summary)
+        # Wall-clock timers: with use_sim_time the ROS clock only moves with /clock (a lockstep
+        # replay advances it 0.1 s per scan), and these are about the process, not the data.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(SUMMARY_PERIOD_S, self._log_summary, clock=steady)
+        self.create_timer(PATH_PERIOD_S, self._publish_path, clock=steady)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=steady)
         self.get_logger().info(
             f'ready: filter {"on" if self.pipeline.use_filter else "off (or all-pass)"} '
             f'(n_bands={self.config.spectral.n_bands}, band_mask='
             f'{list(self.config.spectral.band_mask)}), registration mode '
             f'{self.config.registration.mode}')
 
-    def _make_tf_broadcaster(self):
-        if not self.config.node.publish_tf:
-            return None
-        try:
-            from tf2_ros import TransformBroadcaster
-        except ImportError:
-            self.get_logger().warning('tf2_ros cannot be imported: the odom -> base_link '
-                                      'transform is not published on /tf (odometry still is)')
-            return None
-        return TransformBroadcaster(self)
-
     # -- parameters ------------------------------------------------------------------------
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         changes = {p.name: p.value for p in params if p.name in flatten(self.config)}
-        fixed = sorted(n for n in changes if n.startswith(STARTUP_ONLY_PREFIXES)
+        fixed = sorted(n for n in changes if is_startup_only(n)
                        and changes[n] != _ros_value(flatten(self.config)[n]))
         if fixed:
             return SetParametersResult(
@@ -168,6 +195,12 @@ class FilterOdomNode(Node):
             f'scan {scan.stamp_ns}: decode {1e3 * (t_decoded - t0):.1f} ms, '
             + ', '.join(f'{k} {1e3 * v:.1f} ms' for k, v in result.timings_s.items()))
 
+    def scan_period_s(self) -> float:
+        """The sensor period: the median recent stamp step, else registration.scan_period_s."""
+        if len(self._stamp_steps_ns) >= 3:
+            return float(np.median(self._stamp_steps_ns)) * 1e-9
+        return self.config.registration.scan_period_s
+
     def _count_missed(self, stamp_ns: int) -> None:
         """Sweeps that never reached this callback (queue overwritten, link loss); a step of
         the stamps beyond registration.max_gap_s is a gap or a clock jump, not lost sweeps."""
@@ -176,12 +209,26 @@ class FilterOdomNode(Node):
         if last is None or not 0 < stamp_ns - last <= (
                 self.config.registration.max_gap_s * NS_PER_S):
             return
-        period_ns = self.config.registration.scan_period_s * NS_PER_S
-        missed = int(round((stamp_ns - last) / period_ns)) - 1
+        period_s = self.scan_period_s()
+        self._stamp_steps_ns.append(stamp_ns - last)
+        missed = int(round((stamp_ns - last) * 1e-9 / period_s)) - 1
         if missed > 0:
             self._warn('missed', f'{missed} sweep(s) never arrived before the one at '
-                       f'{stamp_ns} ns (processing slower than the sensor, or lost)')
+                       f'{stamp_ns} ns (processing slower than the sensor, or lost; '
+                       f'sensor period estimated from the stamps: {period_s:.3f} s)')
             self.counters['missed'] += missed - 1
+
+    def _stale_text(self, age_s: float) -> str:
+        """Why a scan is too old: lag, or (far from now) a clock that does not match."""
+        if abs(age_s) > CLOCK_MISMATCH_S:
+            sim = self.get_parameter('use_sim_time').value
+            return (f'dropping scan stamped {age_s:.0f} s before the node clock: the stamps and '
+                    f'the clock disagree; ' + (
+                        'use_sim_time is true: is /clock published (ros2 bag play --clock)?'
+                        if sim else 'playing a bag? play it with --clock and start the node '
+                        'with use_sim_time:=true'))
+        return (f'dropping scan {age_s:.2f} s old (processing lags; '
+                f'max_scan_age_s={self.config.node.max_scan_age_s})')
 
     def _accept(self, scan) -> bool:
         """The pipeline's acceptance (the replay and the offline tools apply the same), then
@@ -195,8 +242,7 @@ class FilterOdomNode(Node):
         now_ns = self.get_clock().now().nanoseconds
         age_s = (now_ns - scan.stamp_ns) * 1e-9
         if now_ns > 0 and age_s > self.config.node.max_scan_age_s:
-            self._warn('stale', f'dropping scan {age_s:.2f} s old (processing lags; '
-                       f'max_scan_age_s={self.config.node.max_scan_age_s})')
+            self._warn('stale', self._stale_text(age_s))
             return False
         if self.last_frame_id is not None and scan.frame_id != self.last_frame_id:
             self._warn('frame_changed', f'scan frame_id changed from {self.last_frame_id!r} to '
@@ -214,12 +260,10 @@ class FilterOdomNode(Node):
         self.path_poses.append(pose_stamped_msg(result.T_odom_base, stamp_ns,
                                                 node_cfg.odom_frame))
         self.path.header.stamp = odom.header.stamp
-        self.path.header.frame_id = node_cfg.odom_frame
-        self.path.poses = list(self.path_poses)
-        self.path_pub.publish(self.path)
-        if self.tf_broadcaster is not None:
-            self.tf_broadcaster.sendTransform(transform_msg(
-                result.T_odom_base, stamp_ns, node_cfg.odom_frame, node_cfg.base_frame))
+        self._path_dirty = True
+        if self.tf_pub is not None:
+            self.tf_pub.send(transform_msg(result.T_odom_base, stamp_ns, node_cfg.odom_frame,
+                                           node_cfg.base_frame))
         if node_cfg.publish_filtered_points and self.cloud_pub.get_subscription_count() > 0:
             scan = result.filtered
             columns = {'x': scan.points_xyz[:, 0].astype(np.float32),
@@ -231,6 +275,45 @@ class FilterOdomNode(Node):
                 columns['frequency'] = result.nu.astype(np.float32)
                 columns['band'] = result.band.astype(np.uint8)
             self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), stamp_ns, header.frame_id))
+
+    def _publish_path(self) -> None:
+        """The whole bounded Path, when it changed and someone listens (timer)."""
+        if not self._path_dirty or self.path_pub.get_subscription_count() == 0:
+            return
+        self.path.header.frame_id = self.config.node.odom_frame
+        self.path.poses = list(self.path_poses)
+        self.path_pub.publish(self.path)
+        self._path_dirty = False
+
+    def _publish_diagnostics(self) -> None:
+        assessment = self.diagnostics.assess(time.monotonic(), self.counters,
+                                             list(self.latencies_s)[-100:],
+                                             self.scan_period_s())
+        self.diagnostics_pub.publish(diagnostic_array(
+            assessment, self.get_clock().now().to_msg(), f'{self.get_name()}: odometry',
+            self.last_frame_id or 'lidar'))
+
+    def _on_reset(self, request, response):
+        """`~/reset`: start the odometry again from the identity, with an empty map."""
+        reset = getattr(self.pipeline, 'reset', None)
+        if callable(reset):
+            reset()
+        else:
+            self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
+        self.path_poses.clear()
+        self._path_dirty = True
+        self.last_stamp_ns = None
+        self.last_received_stamp_ns = None
+        self._stamp_steps_ns.clear()
+        self.counters['reset'] += 1
+        self.get_logger().info('odometry reset: the next scan starts at the identity')
+        response.success = True
+        response.message = 'odometry reset'
+        return response
+
+    def destroy_node(self) -> None:
+        stop_forwarding(self._log_handler)
+        super().destroy_node()
 
     def _log_summary(self, final: bool = False) -> None:
         """Latency and the count of every kind of problem (all of them at shutdown)."""
@@ -246,17 +329,30 @@ class FilterOdomNode(Node):
                                f'{lat_ms.size} scans; {counts}')
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def main(args=None) -> None:
-    rclpy.init(args=args)
     node = None
     try:
+        check_params_files(sys.argv if args is None else args)
+        profile = use_large_message_profile()
+        # Our own SIGINT/SIGTERM handling: rclpy's would shut the context down before the final
+        # counts are logged ("Failed to publish log message to rosout").
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        signal.signal(signal.SIGINT, _interrupt)
+        signal.signal(signal.SIGTERM, _interrupt)
         node = FilterOdomNode()
+        if profile:
+            node.get_logger().info(f'Fast DDS profile for large messages: {profile}')
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (GftOdomError, ParameterException) as exc:
-        # Only reachable at start-up (invalid params file): nothing to keep running.
-        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
+    except (GftOdomError, ParameterException, RCLError) as exc:
+        # Only reachable at start-up (a missing, unreadable or invalid params file).
+        text = str(exc).split(', at /')[0]  # rcl appends C source locations
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {text}')
         raise SystemExit(2) from None
     finally:
         if node is not None:

@@ -16,7 +16,7 @@ def add_config(parser: argparse.ArgumentParser,
                          help: str = 'ROS params file (as for filter_odom_node --params-file)'
                          ) -> None:
     """--config / --set, shared by every sub-command that runs the pipeline."""
-    parser.add_argument('--config', metavar='YAML', help=help)
+    parser.add_argument('--config', '--params-file', dest='config', metavar='YAML', help=help)
     parser.add_argument('--set', dest='overrides', action='append', default=[],
                         metavar='SECTION.KEY=VALUE',
                         help='override one parameter, e.g. --set spectral.band_mask=[1,9,10]')

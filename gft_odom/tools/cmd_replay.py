@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from pathlib import Path
 
-from gft_odom.params_file import load_config
-from gft_odom.replay import run_replay, write_results
 from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
@@ -39,14 +38,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Replay the bags and write the results folder."""
+    from gft_odom.params_file import load_config
+    from gft_odom.replay import run_replay, write_results
+
     overrides = list(args.overrides)
     if args.no_filter:
         overrides.append('pipeline.use_spectral_filter=false')
     config = load_config(args.config, overrides)
     if args.through_node:
-        from gft_odom.tools.through_node import replay_through_node
+        from gft_odom.ros.through_node import replay_through_node
         replay_fn = replay_through_node
-        extra = {'node_exe': args.node_exe}
+        # The node's log goes with the results (the temporary folder is removed).
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        extra = {'node_exe': args.node_exe, 'log_path': Path(args.out) / 'node.log'}
     else:
         replay_fn, extra = run_replay, {}
     with progress_bar(None, 'replay', enabled=not args.quiet) as update:

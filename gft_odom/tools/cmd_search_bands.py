@@ -6,7 +6,6 @@ import argparse
 import logging
 
 from gft_odom.errors import ConfigError
-from gft_odom.params_file import load_config
 from gft_odom.tools.args import add_bags, add_config, add_switches
 from gft_odom.tools.progress import progress_bar
 
@@ -25,8 +24,10 @@ DESCRIPTION = ('Rank band masks by trajectory error on the training bags (in-sam
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of `gft-odom search-bands`."""
     add_bags(p, help='training bag(s)')
-    p.add_argument('--gt', nargs='+', required=True, metavar='GT',
-                   help='ground truth per training bag (gt.csv, gt.bag or TUM)')
+    # One file per --gt (repeat it): `nargs='+'` swallowed a BAG written after it.
+    p.add_argument('--gt', action='append', required=True, metavar='GT',
+                   help='ground truth of a training bag (gt.csv, gt.bag or TUM); repeat it, '
+                        'in the order of the BAGs')
     p.add_argument('--out', required=True, help='output folder (also the resume state)')
     p.add_argument('--min-bands', type=int, default=2)
     p.add_argument('--max-bands', type=int, default=10)
@@ -34,9 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='registration mode (default: from --config, else default)')
     p.add_argument('--strategy', choices=('exhaustive', 'smart'), default='exhaustive',
                    help='every combination, or correlation-seeded beam search')
-    p.add_argument('--test', nargs='+', default=[], metavar='BAG', help='held-out bag(s)')
-    p.add_argument('--test-gt', nargs='+', default=[], metavar='GT',
-                   help='ground truth per held-out bag')
+    p.add_argument('--test', action='append', default=[], metavar='BAG',
+                   help='a held-out bag; repeat it')
+    p.add_argument('--test-gt', action='append', default=[], metavar='GT',
+                   help='ground truth of a held-out bag; repeat it, in the order of --test')
     p.add_argument('--workers', type=int, default=1, help='local worker processes')
     p.add_argument('--ray-address', metavar='ADDR',
                    help='run on an existing Ray cluster (e.g. 127.0.0.1:6379)')
@@ -62,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     """Search the masks and write the results and best_mask.yaml."""
     from gft_odom.bands.run import run_band_search, summary_markdown
     from gft_odom.bands.search import BandSearchConfig
+    from gft_odom.params_file import load_config
 
     overrides = list(args.overrides)
     if args.mode:

@@ -261,7 +261,7 @@ def test_cli_search_bands(bags, tmp_path, capsys):
     assert 'held-out (test)' in printed and 'in-sample (train)' in printed
     assert load_config(out / 'best_mask.yaml').spectral.n_bands == 2
     # One bag, two ground truths: refused with exit code 1, nothing run.
-    bad = main(['search-bands', *train.bags, '--gt', train.gt_path, test.gt_path,
+    bad = main(['search-bands', *train.bags, '--gt', train.gt_path, '--gt', test.gt_path,
                 '--out', str(tmp_path / 'bad'), '--quiet'])
     assert bad == 1
     assert not (tmp_path / 'bad').exists()

@@ -161,10 +161,8 @@ def small_drive(tmp_path_factory):
 @pytest.fixture(scope='session')
 def drive_messages(small_drive) -> list:
     """The drive's scans as rclpy PointCloud2 messages, bytes as recorded."""
-    from sensor_msgs.msg import PointCloud2, PointField
-
     from gft_odom.io.bags import ScanBagReader
-    from gft_odom.tools.through_node import ros_message_from_bag
+    from gft_odom.ros.through_node import ros_message_from_bag
     with ScanBagReader([small_drive.bag_path]) as reader:
-        return [ros_message_from_bag(raw, PointCloud2, PointField)
+        return [ros_message_from_bag(raw)
                 for _, raw in reader.iter_messages()]

@@ -173,18 +173,16 @@ def test_replay_of_a_bag_with_a_late_stamp_writes_its_results(fault_drive, tmp_p
 def test_node_and_replay_give_the_same_trajectory_with_faults(fault_drive, tmp_path):
     import rclpy
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import PointCloud2, PointField
 
     from gft_odom.replay import run_replay
     from gft_odom.ros.node import FilterOdomNode
-    from gft_odom.tools.through_node import ros_message_from_bag
+    from gft_odom.ros.through_node import ros_message_from_bag
     scans, _, _ = fault_drive
     bag = tmp_path / 'faulty_step'
     _faulty_bag(bag, scans, step_clock=True)
     replay = run_replay([bag], GftOdomConfig())
     with ScanBagReader([bag]) as reader:
-        messages = [ros_message_from_bag(raw, PointCloud2, PointField)
-                    for _, raw in reader.iter_messages()]
+        messages = [ros_message_from_bag(raw) for _, raw in reader.iter_messages()]
     context = rclpy.Context()
     rclpy.init(context=context)
     node = FilterOdomNode(context=context, parameter_overrides=[

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import tempfile
 import time
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.params_file import load_config, packaged_params_file, write_params_file
 from gft_odom.replay import run_replay
-from gft_odom.tools.through_node import replay_through_node
+from gft_odom.ros.through_node import replay_through_node
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
@@ -115,6 +116,9 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
     for key in ('PYTHONPATH', 'AMENT_PREFIX_PATH'):
         monkeypatch.setenv(key, env[key])  # as after `source install/setup.bash`
     out = tmp_path / 'through_node'
+    temp = tmp_path / 'tmp'  # a private temp dir: other runs on this host use /tmp too
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, 'tempdir', str(temp))
     assert main(['replay', str(orchard_bag.bag_path), '--gt', str(orchard_bag.gt_csv_path),
                  '--out', str(out), '--through-node', '--max-scans', '5', '--quiet',
                  '--config', str(packaged_params_file('paper_mode_gft.yaml'))]) == 0
@@ -124,3 +128,6 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
              if not line.startswith('#')]
     assert len(poses) == 5
     assert (out / 'trajectory.png').is_file()
+    # The node's log goes with the results; no temporary folder is left behind.
+    assert 'final counts:' in (out / 'node.log').read_text()
+    assert not list(temp.glob('gft_odom_node_*'))

@@ -33,3 +33,34 @@ def test_console_script_runs(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert 'band_mask: [1, 9, 10]' in out.read_text()
+
+
+def test_help_imports_only_the_command_it_shows():
+    """`--help` must not pull in open3d / matplotlib through the other sub-commands."""
+    code = ('import sys\nfrom gft_odom.tools.cli import main\n'
+            'try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n'
+            'print(sorted(m for m in ("open3d", "matplotlib", "gft_odom.tools.cmd_bench", '
+            '"gft_odom.tools.cmd_replay") if m in sys.modules))')
+    top = subprocess.run([sys.executable, '-c', code, '--help'], capture_output=True,
+                         text=True, timeout=120)
+    assert 'search-bands' in top.stdout and 'replay' in top.stdout
+    assert top.stdout.strip().endswith('[]'), top.stdout[-300:]
+    replay = subprocess.run([sys.executable, '-c', code, 'replay', '--help'],
+                            capture_output=True, text=True, timeout=120)
+    assert '--through-node' in replay.stdout
+    assert replay.stdout.strip().endswith("['gft_odom.tools.cmd_replay']"), replay.stdout[-300:]
+
+
+def test_gt_takes_no_bag_written_after_it():
+    parser = build_parser('search-bands')
+    args = parser.parse_args(['search-bands', 'a.bag', '--gt', 'a.csv', 'b.bag', '--out', 'o'])
+    assert args.bags == ['a.bag', 'b.bag'] and args.gt == ['a.csv']
+    args = parser.parse_args(['search-bands', 'a.bag', 'b.bag', '--gt', 'a.csv', '--gt', 'b.csv',
+                              '--out', 'o'])
+    assert args.gt == ['a.csv', 'b.csv']
+
+
+def test_replay_takes_params_file_as_well_as_config():
+    parser = build_parser('replay')
+    args = parser.parse_args(['replay', 'x.bag', '--out', 'o', '--params-file', 'p.yaml'])
+    assert args.config == 'p.yaml'

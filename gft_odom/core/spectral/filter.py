@@ -44,9 +44,10 @@ from gft_odom.core.spectral.frequency import (
 )
 from gft_odom.core.spectral.graph import (
     GraphLaplacian,
+    ScanLineLaplacian,
     components,
     gaussian_graph,
-    scan_line_laplacian,
+    scan_line_graph,
 )
 from gft_odom.core.spectral.slicing import Slices, slice_points, voxelise
 from gft_odom.errors import ConfigError, SpectralError
@@ -93,9 +94,6 @@ class SpectralConfig:
     # canopy; on training seeds 0.05 m gave 0.53 bits about the surface with no band over 36 %
     # of the points, 0.1 m 0.56 bits but up to 68 % in one band (docs/method.md).
     scan_line_sigma_m: float = 0.05
-    # Cross-ring edges join points whose azimuths differ by at most this (VLP-16: 0.2 deg
-    # columns, so 0.05 rad tolerates a dozen dropped returns).
-    scan_line_max_azimuth_gap_rad: float = 0.05
     n_bands: int = 10
     # Default all-pass: the tuned mask is chosen later by the band search.
     band_mask: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
@@ -106,12 +104,11 @@ class SpectralConfig:
     # points at K = 20 (95.7 % at 10, 98.7 % at 30, 99.0 % at 60) in bench_spectral; the cost
     # of the recursion is linear in K.
     chebyshev_order: int = 20
-    # Lanczos steps for lambda_max (Ritz residual added). Scan-line graph of a VLP-16 scan: 8
-    # steps are within 1.3 % of ARPACK (10: 1.0 %) and give ARPACK's band to 98.1 % of the
-    # points for `ldos_mean` (30: 98.9 %), at a quarter of the cost of 30. Slice graphs with
-    # the Chebyshev `signal` path want 30 (within 4e-4 of ARPACK; the paper-mode overlay).
+    # lambda_max of the slice graphs: batched Lanczos, 30 steps within 4e-4 (median) of ARPACK,
+    # worst underestimate 3e-4 (20 steps: 3e-3, 6e-3). The scan-line graph's L is tridiagonal:
+    # its lambda_max is computed exactly (bisection) and these two are not used.
     lambda_max_method: str = 'lanczos'
-    lanczos_iterations: int = 8
+    lanczos_iterations: int = 30
     # Hutchinson probes of the `kpm` definition (its Chebyshev order is `chebyshev_order`).
     kpm_probes: int = 8
     # Isolated points (no neighbour within tau) are band 0; kept so all-pass returns the input.
@@ -148,7 +145,7 @@ class SpectralConfig:
                 raise ConfigError(f'spectral.{name} must be a finite number > 0, got {value!r}')
 
         for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m',
-                     'scan_line_max_azimuth_gap_rad', 'local_map_keyframe_distance_m',
+                     'local_map_keyframe_distance_m',
                      'local_map_voxel_m', 'local_map_max_distance_m'):
             positive(name)
         if not (np.isfinite(self.z_min_m) and np.isfinite(self.z_max_m)
@@ -338,10 +335,8 @@ class SpectralFilter:
             index = np.flatnonzero(finite) if not finite.all() else None
             coords = points if index is None else points[index]
             ring_f = np.asarray(ring) if index is None else np.asarray(ring)[index]
-            L, order = scan_line_laplacian(coords, ring_f, self.config.tau_m,
-                                           self.config.scan_line_sigma_m,
-                                           self.config.scan_line_max_azimuth_gap_rad)
-            W = L.W
+            L, order = scan_line_graph(coords, ring_f, self.config.tau_m,
+                                       self.config.scan_line_sigma_m)
             if index is not None:
                 order = index[order]
             sl = Slices(order=order, starts=np.array([0, order.size], dtype=np.int64),
@@ -365,13 +360,16 @@ class SpectralFilter:
             L = GraphLaplacian(W)
         # A node with no neighbour is isolated (band 0) unless it merges several points: those
         # form a cluster tighter than the voxel, i.e. a perfectly smooth component (nu = 0).
-        isolated_nodes = (np.diff(W.indptr) == 0) & (points_per_node <= 1)
-        X = (self._centred_signal(W, coords, node_block)
+        isolated_nodes = (L.degree == 0.0) & (points_per_node <= 1)
+        X = (self._centred_signal(L.W, coords, node_block)
              if self.definition.needs_position_signal else None)
         timings['graph'] = time.perf_counter() - t
         t = time.perf_counter()
-        lmax = lambda_max_per_slice(L, starts, self.config.lambda_max_method,
-                                    self.config.lanczos_iterations)
+        if isinstance(L, ScanLineLaplacian):  # tridiagonal: exact, cheaper than Lanczos
+            lmax = np.array([L.lambda_max()])
+        else:
+            lmax = lambda_max_per_slice(L, starts, self.config.lambda_max_method,
+                                        self.config.lanczos_iterations)
         timings['lambda_max'] = time.perf_counter() - t
         return SpectralGraph(n_points=points.shape[0], sl=sl, node_of_point=node_of_point,
                              starts=starts, node_block=node_block, L=L,

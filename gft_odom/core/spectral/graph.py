@@ -10,6 +10,7 @@ gap larger than tau) in a third coordinate, so pairs never cross slices and one
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -95,20 +96,18 @@ def components(W: sp.spmatrix) -> tuple[int, np.ndarray]:
 # Azimuth quantised to 16 bits for sorting (0.0055 deg, far below the VLP-16's 0.2 deg columns):
 # two stable 16-bit sorts (numpy's radix sort) order the points by (ring, azimuth).
 _AZIMUTH_BINS = 65535
-_FAR = 1 << 40  # an azimuth gap larger than any real one (no ring above)
+# Components solved first in ScanLineLaplacian.lambda_max (the rest are usually ruled out).
+_EXACT_FIRST_COMPONENTS = 8
 
 
-def _scan_line_sorted(points_xyz: np.ndarray, ring: np.ndarray, max_azimuth_gap_rad: float
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(order, same, i, j): the points sorted by (ring, azimuth); `same[k]` when sorted
-    points k and k + 1 are on one ring (a ring edge); (i, j) the other edges (each ring's
-    closing edge, and k to the nearest-azimuth point of the ring above) as sorted positions."""
+def scan_line_order(points_xyz: np.ndarray, ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, same_ring): the input indices sorted by (ring, azimuth), and `same_ring[k]`
+    when sorted points k and k + 1 lie on one ring (neighbours along that ring's scan line)."""
     xyz = np.asarray(points_xyz, dtype=np.float64)
     n = xyz.shape[0]
-    if n < 2:
-        empty = np.zeros(0, np.int64)
-        return np.arange(n), np.zeros(max(n - 1, 0), bool), empty, empty
     ring = np.asarray(ring)
+    if ring.shape != (n,):
+        raise SpectralError(f'ring must have shape ({n},), got {ring.shape}')
     if ring.dtype != np.uint16:
         if ring.size and (ring.min() < 0 or ring.max() > np.iinfo(np.uint16).max):
             raise SpectralError(f'ring values must be in 0..65535, got {ring.min()}..'
@@ -118,91 +117,126 @@ def _scan_line_sorted(points_xyz: np.ndarray, ring: np.ndarray, max_azimuth_gap_
                    * (_AZIMUTH_BINS / (2.0 * np.pi))).astype(np.uint16)
     order = np.argsort(azimuth_bin, kind='stable')
     order = np.take(order, np.argsort(np.take(ring, order), kind='stable'))
-    ring_sorted = np.take(ring, order).astype(np.int64)
-    key_sorted = ring_sorted * (_AZIMUTH_BINS + 1) + np.take(azimuth_bin, order)
-    # Along a ring: consecutive points in azimuth, and the ring's last point to its first.
-    same = ring_sorted[1:] == ring_sorted[:-1]
-    first = np.flatnonzero(np.r_[True, ~same])
-    last = np.r_[first[1:] - 1, n - 1]
-    closes = last - first >= 2  # a ring of two points is already joined once
-    # Across rings: the nearest azimuth in the ring above (the sorted neighbours around it).
-    query = key_sorted + (_AZIMUTH_BINS + 1)
-    pos = np.searchsorted(key_sorted, query)
-    below = np.minimum(np.maximum(pos - 1, 0), n - 1)
-    above = np.minimum(pos, n - 1)
-    up = ring_sorted + 1
-    gap_below = np.where(np.take(ring_sorted, below) == up,
-                         np.abs(np.take(key_sorted, below) - query), _FAR)
-    gap_above = np.where(np.take(ring_sorted, above) == up,
-                         np.abs(np.take(key_sorted, above) - query), _FAR)
-    nearest = np.where(gap_below <= gap_above, below, above)
-    max_gap_bins = max_azimuth_gap_rad * (_AZIMUTH_BINS / (2.0 * np.pi))
-    cross = np.flatnonzero(np.minimum(gap_below, gap_above) <= max_gap_bins)
-    i = np.concatenate([last[closes], cross])
-    j = np.concatenate([first[closes], nearest[cross]])
-    return order, same, i, j
+    ring_sorted = np.take(ring, order)
+    return order, ring_sorted[1:] == ring_sorted[:-1]
 
 
-def scan_line_edges(points_xyz: np.ndarray, ring: np.ndarray,
-                    max_azimuth_gap_rad: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """Undirected edges (i, j) along the scan lines of a spinning LiDAR, each edge once, as
-    input indices.
+class ScanLineLaplacian(GraphLaplacian):
+    """L = D - W of the scan-line graph, nodes in scan-line order: W is tridiagonal.
 
-    Every point is joined to the next point of its own ring in azimuth (the ring closes on
-    itself) and to the point of the ring above with the nearest azimuth, if one lies within
-    `max_azimuth_gap_rad`. Uses only the `ring` field and the azimuth, so it needs no KD-tree
-    and does not assume the cloud is organised or in firing order.
+    Each point is joined to its azimuth neighbours on its own ring (`w_next[k]` is the weight
+    of the edge between sorted points k and k + 1, 0 where there is none), so every
+    connected component is a weighted path and L is a tridiagonal matrix: products with it
+    are three vector operations, and its largest eigenvalue is found exactly by bisection on
+    the few components that can hold it (`lambda_max`).
     """
-    order, same, i, j = _scan_line_sorted(points_xyz, ring, max_azimuth_gap_rad)
-    k = np.flatnonzero(same)
-    return order[np.concatenate([k, i])], order[np.concatenate([k + 1, j])]
+
+    def __init__(self, w_next: np.ndarray, n: int | None = None) -> None:
+        """`w_next` (n - 1,): weight of the edge (k, k + 1) in scan-line order."""
+        self.w_next = np.asarray(w_next, dtype=np.float64)
+        n = self.w_next.shape[0] + 1 if n is None else int(n)
+        self.degree = np.zeros(n)
+        if n > 1:
+            self.degree[:-1] += self.w_next
+            self.degree[1:] += self.w_next
+        self.shape = (n, n)
+        self.dtype = np.dtype(np.float64)
+        self._W = None
+
+    @classmethod
+    def empty(cls, n: int) -> 'ScanLineLaplacian':
+        """The Laplacian of `n` points with no edge."""
+        return cls(np.zeros(max(n - 1, 0)), n)
+
+    @property
+    def W(self) -> sp.csr_matrix:
+        """W as a sparse matrix, built on first use (only some definitions need it)."""
+        if self._W is None:
+            n = self.shape[0]
+            self._W = (sp.diags([self.w_next, self.w_next], [-1, 1], shape=(n, n), format='csr')
+                       if n > 1 else sp.csr_matrix((n, n)))
+            self._W.eliminate_zeros()
+        return self._W
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        w = self.w_next if x.ndim == 1 else self.w_next[:, None]
+        d = self.degree if x.ndim == 1 else self.degree[:, None]
+        out = d * x
+        if x.shape[0] > 1:
+            out[:-1] -= w * x[1:]
+            out[1:] -= w * x[:-1]
+        return out
+
+    def lambda_max(self) -> float:
+        """Largest eigenvalue of L, exactly (LAPACK bisection on tridiagonal blocks, to 1e-9).
+
+        lambda_max is the largest over the connected components (weighted paths), and a
+        component's is at most max_k (d_k + d_k+1) (Anderson-Morley). The exact value of the
+        components with the largest bounds is a lower bound that rules out every component
+        whose bound is below it; only the rest (usually none) are solved too.
+        """
+        n = self.shape[0]
+        if n < 2 or not np.any(self.w_next > 0.0):
+            return 0.0
+        d, w = self.degree, self.w_next
+        comp = np.cumsum(np.r_[False, w <= 0.0])  # component of every node
+        bound = np.zeros(int(comp[-1]) + 1)
+        np.maximum.at(bound, comp[:-1], np.where(w > 0.0, d[:-1] + d[1:], 0.0))
+        first = np.argsort(-bound)[:_EXACT_FIRST_COMPONENTS]
+        chosen = np.zeros(bound.size, dtype=bool)
+        chosen[first] = True
+        best = self._largest(comp, chosen)
+        rest = ~chosen & (bound > best)
+        if np.any(rest):
+            best = max(best, self._largest(comp, rest))
+        return best
+
+    def _largest(self, comp: np.ndarray, chosen: np.ndarray) -> float:
+        """Largest eigenvalue of the principal block of the `chosen` components (their union
+        is block-diagonal: consecutive kept nodes of different components get a 0 coupling)."""
+        nodes = np.flatnonzero(chosen[comp])
+        n = self.shape[0]
+        sub_w = np.where(np.diff(nodes) == 1, self.w_next[np.minimum(nodes[:-1], n - 2)], 0.0)
+        m = nodes.size
+        return float(scipy.linalg.eigvalsh_tridiagonal(
+            self.degree[nodes], -sub_w, select='i', select_range=(m - 1, m - 1),
+            lapack_driver='stebz', tol=1e-9, check_finite=False)[0])
 
 
-def scan_line_graph(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float, sigma_m: float,
-                    max_azimuth_gap_rad: float = 0.05, dtype=np.float64
-                    ) -> tuple[sp.csr_matrix, np.ndarray]:
-    """Thresholded Gaussian weights (3-D distance) on the `scan_line_edges`.
+def scan_line_graph(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float, sigma_m: float
+                    ) -> tuple[ScanLineLaplacian, np.ndarray]:
+    """The scan-line graph: (L, order), node k being input point `order[k]`.
 
-    Returns (W, order): W (n, n) CSR over the points in scan-line order, node k being input
-    point `order[k]`. Numbering the nodes along the scan lines makes the ring edges
-    neighbouring rows, so the weights come from differences of consecutive rows and the CSR
-    is assembled with one stable integer sort.
+    Every point is joined to its azimuth neighbours on its own ring, with the Gaussian weight
+    `exp(-d^2 / (2 sigma^2))` of their 3-D distance d, cut at `tau_m`. Uses only the `ring`
+    field and the azimuth: no KD-tree, and no assumption that the cloud is organised or in
+    firing order. Edges across rings were measured to add nothing to what the frequency says
+    about the surface (docs/method.md), and without them L is tridiagonal.
     """
     if not tau_m > 0.0 or not sigma_m > 0.0:
         raise SpectralError(f'tau_m and sigma_m must be > 0, got tau_m={tau_m}, '
                             f'sigma_m={sigma_m}')
     xyz = np.asarray(points_xyz, dtype=np.float64)
     n = xyz.shape[0]
-    order, same, i, j = _scan_line_sorted(xyz, ring, max_azimuth_gap_rad)
+    if n < 2:
+        return ScanLineLaplacian.empty(n), np.arange(n)
+    order, same_ring = scan_line_order(xyz, ring)
     # np.take: row gathers several times faster than fancy indexing (measured).
     xyz = np.take(xyz, order, axis=0)
-    tau2 = tau_m * tau_m
-    # Ring edges (k, k + 1): differences of consecutive rows, no gather.
     step = xyz[1:] - xyz[:-1]
-    d2_ring = np.einsum('ij,ij->i', step, step)
-    k = np.flatnonzero(same & (d2_ring <= tau2))
-    diff = np.take(xyz, i, axis=0) - np.take(xyz, j, axis=0)
-    d2 = np.einsum('ij,ij->i', diff, diff)
-    near = (d2 <= tau2) & (i != j)
-    i = np.concatenate([k, i[near]])
-    j = np.concatenate([k + 1, j[near]])
-    d2 = np.concatenate([d2_ring[k], d2[near]])
-    w = np.exp(d2 * (-0.5 / sigma_m**2)).astype(dtype, copy=False)
-    rows = np.concatenate([i, j])
-    by_row = np.argsort(rows, kind='stable')
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
-    cols = np.take(np.concatenate([j, i]), by_row)
-    W = sp.csr_matrix((np.take(np.concatenate([w, w]), by_row), cols, indptr), shape=(n, n))
-    return W, order
+    d2 = np.einsum('ij,ij->i', step, step)
+    w = np.where(same_ring & (d2 <= tau_m * tau_m), np.exp(d2 * (-0.5 / sigma_m**2)), 0.0)
+    return ScanLineLaplacian(w), order
 
 
-def scan_line_laplacian(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float, sigma_m: float,
-                        max_azimuth_gap_rad: float = 0.05) -> tuple[GraphLaplacian, np.ndarray]:
-    """`scan_line_graph` as a `GraphLaplacian` (degrees summed once from the CSR rows)."""
-    W, order = scan_line_graph(points_xyz, ring, tau_m, sigma_m, max_azimuth_gap_rad)
-    # Row sums; the appended 0 lets trailing empty rows index it, and reduceat gives an empty
-    # row the next entry, so those are zeroed.
-    degree = np.add.reduceat(np.r_[W.data, 0.0], W.indptr[:-1]) if W.shape[0] else np.zeros(0)
-    degree[np.diff(W.indptr) == 0] = 0.0
-    return GraphLaplacian(W, degree), order
+def scan_line_edges(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float = np.inf
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The scan-line graph's edges (i, j) as input indices, each edge once (within `tau_m`)."""
+    xyz = np.asarray(points_xyz, dtype=np.float64)
+    if xyz.shape[0] < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order, same_ring = scan_line_order(xyz, ring)
+    xyz = np.take(xyz, order, axis=0)
+    d = np.linalg.norm(xyz[1:] - xyz[:-1], axis=1)
+    k = np.flatnonzero(same_ring & (d <= tau_m))
+    return order[k], order[k + 1]

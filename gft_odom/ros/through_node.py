@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import random
+import shutil
 import signal
 import subprocess
 import tempfile
@@ -18,6 +19,12 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+import rclpy
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMsg
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import PointCloud2
 
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.constants import NODE_NAME, SCAN_PERIOD_S
@@ -26,9 +33,11 @@ from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import GftOdomError
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
+from gft_odom.io.pointcloud2 import CloudBlob, FieldSpec
 from gft_odom.params_file import config_to_yaml
 from gft_odom.pipeline import base_to_sensor
 from gft_odom.replay import ReplayResult, is_gps_ground_truth, summarize
+from gft_odom.ros.conversions import blob_to_msg, ns_to_stamp, odometry_to_pose, stamp_to_ns
 
 log = logging.getLogger(__name__)
 
@@ -67,20 +76,15 @@ def stop_node_process(proc: subprocess.Popen, timeout_s: float = 15.0) -> int:
     return proc.returncode
 
 
-def ros_message_from_bag(raw, PointCloud2, PointField):
+def ros_message_from_bag(raw) -> PointCloud2:
     """A bag's PointCloud2 (rosbags object, ROS 1 or 2) as an rclpy message, bytes untouched."""
-    msg = PointCloud2()
-    msg.header.stamp.sec = int(raw.header.stamp.sec)
-    msg.header.stamp.nanosec = int(raw.header.stamp.nanosec)
-    msg.header.frame_id = str(raw.header.frame_id)
-    msg.height, msg.width = int(raw.height), int(raw.width)
-    msg.fields = [PointField(name=f.name, offset=int(f.offset), datatype=int(f.datatype),
-                             count=int(f.count)) for f in raw.fields]
-    msg.is_bigendian = bool(raw.is_bigendian)
-    msg.point_step, msg.row_step = int(raw.point_step), int(raw.row_step)
-    msg.data = bytes(np.asarray(raw.data, dtype=np.uint8).tobytes())
-    msg.is_dense = bool(raw.is_dense)
-    return msg
+    blob = CloudBlob(
+        fields=tuple(FieldSpec(name=str(f.name), offset=int(f.offset), datatype=int(f.datatype),
+                               count=int(f.count)) for f in raw.fields),
+        point_step=int(raw.point_step), row_step=int(raw.row_step), height=int(raw.height),
+        width=int(raw.width), is_bigendian=bool(raw.is_bigendian), is_dense=bool(raw.is_dense),
+        data=np.asarray(raw.data, dtype=np.uint8).tobytes())
+    return blob_to_msg(blob, stamp_to_ns(raw.header.stamp), str(raw.header.frame_id))
 
 
 def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
@@ -91,15 +95,6 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                         env: dict[str, str] | None = None,
                         log_path: str | Path | None = None) -> ReplayResult:
     """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
-    import rclpy
-    from nav_msgs.msg import Odometry
-    from nav_msgs.msg import Path as PathMsg
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-    from rosgraph_msgs.msg import Clock
-    from sensor_msgs.msg import PointCloud2, PointField
-
-    from gft_odom.ros.conversions import ns_to_stamp, odometry_to_pose, stamp_to_ns
-
     exe = find_node_executable(node_exe)
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
     env = dict(os.environ if env is None else env)
@@ -157,6 +152,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         return True
 
     stamps, latency, points_in, statuses = [], [], [], []
+    failed = True
     try:
         if not spin_until(lambda: cloud_pub.get_subscription_count() > 0
                           and node.count_publishers(f'/{NODE_NAME}/odometry') > 0, 60.0):
@@ -170,7 +166,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             for i, (stamp_ns, raw) in enumerate(reader.iter_messages()):
                 if i >= total:
                     break
-                msg = ros_message_from_bag(raw, PointCloud2, PointField)
+                msg = ros_message_from_bag(raw)
                 stamp_ns = stamp_to_ns(msg.header.stamp)
                 # Never faster than the sensor: back-to-back 0.5 MB best-effort clouds were
                 # seen to be lost whole on this machine (every resend of the same scan).
@@ -197,13 +193,20 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                     statuses.append('no_answer')
                 if progress is not None:
                     progress(i + 1, total)
-            spin_until(lambda: False, 0.5)  # let the last filtered cloud / path arrive
+            # The last filtered cloud, and the Path (the node sends it once a second).
+            spin_until(lambda: False, 0.5)
+            path_length = min(len(stamps), config.node.path_max_length)
+            spin_until(lambda: bool(last_path) and len(last_path[0].poses) >= path_length, 3.0)
             skipped = getattr(reader, 'skipped', 0)
+        failed = not stamps
     finally:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
         stop_node_process(proc)
+        # The temporary folder goes, unless it holds the log an error message points to.
+        if not (failed and node_log.parent == work):
+            shutil.rmtree(work, ignore_errors=True)
     if not stamps:
         raise NodeProcessError(f'filter_odom_node answered none of the {len(statuses)} scans '
                                f'sent; its log: {node_log}')
@@ -220,5 +223,6 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
     replay.metrics = summarize(replay, config)
     replay.metrics['node_path_length'] = len(last_path[0].poses) if last_path else 0
-    replay.metrics['node_log'] = str(node_log)
+    if log_path:
+        replay.metrics['node_log'] = str(node_log)
     return replay

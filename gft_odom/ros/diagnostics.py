@@ -1,0 +1,95 @@
+"""`/diagnostics` status of the odometry: OK / WARN / ERROR from the recent counters.
+
+Judged over a sliding window of the last `WINDOW_S` seconds, so a problem clears itself once it
+stops: the share of scans that fell back to the motion prediction, the latency against the
+sensor period, the share of sweeps missed or dropped as stale, and the scans rejected.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from std_msgs.msg import Header
+
+WINDOW_S = 10.0
+FALLBACK_WARN, FALLBACK_ERROR = 0.2, 0.5
+LOST_WARN, LOST_ERROR = 0.05, 0.5  # share of sweeps missed or stale
+REJECTED = ('malformed', 'empty', 'degenerate', 'out_of_order', 'clock_jump', 'failed',
+            'rejected')
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+@dataclass
+class Assessment:
+    level: bytes
+    message: str
+    values: dict[str, str]
+
+
+class OdometryDiagnostics:
+    """Keeps counter snapshots; `assess` compares now with the oldest one in the window."""
+
+    def __init__(self, window_s: float = WINDOW_S) -> None:
+        self._snapshots: collections.deque = collections.deque()
+        self._window_s = window_s
+
+    def assess(self, now_s: float, counters, latencies_s, period_s: float) -> Assessment:
+        current = dict(counters)
+        self._snapshots.append((now_s, current))
+        while self._snapshots and now_s - self._snapshots[0][0] > self._window_s:
+            self._snapshots.popleft()
+        old = self._snapshots[0][1]
+
+        def delta(*kinds) -> int:
+            return sum(current.get(k, 0) - old.get(k, 0) for k in kinds)
+
+        processed = delta('processed')
+        fallback = delta('fallback')
+        lost = delta('missed', 'stale')
+        rejected = delta(*REJECTED)
+        lat = sorted(latencies_s)
+        median_s = lat[len(lat) // 2] if lat else None
+        p95_s = lat[min(len(lat) - 1, int(0.95 * len(lat)))] if lat else None
+        problems: list[tuple[bytes, str]] = []
+        if processed == 0:
+            problems.append((WARN, f'no scan processed in the last {self._window_s:.0f} s'))
+        else:
+            share = fallback / processed
+            if share >= FALLBACK_WARN:
+                problems.append((ERROR if share >= FALLBACK_ERROR else WARN,
+                                 f'{100 * share:.0f} % of scans fell back to the prediction'))
+            lost_share = lost / (processed + lost)
+            if lost_share >= LOST_WARN:
+                problems.append((ERROR if lost_share >= LOST_ERROR else WARN,
+                                 f'{100 * lost_share:.0f} % of sweeps missed or stale'))
+        if median_s is not None and median_s > period_s:
+            problems.append((ERROR, f'median latency {1e3 * median_s:.0f} ms > the sensor '
+                                    f'period {1e3 * period_s:.0f} ms'))
+        elif p95_s is not None and p95_s > period_s:
+            problems.append((WARN, f'p95 latency {1e3 * p95_s:.0f} ms > the sensor period '
+                                   f'{1e3 * period_s:.0f} ms'))
+        if rejected:
+            problems.append((WARN, f'{rejected} scan(s) rejected'))
+        level = max((lvl for lvl, _ in problems), default=OK)
+        message = '; '.join(text for _, text in problems) or 'tracking'
+        values = {
+            'window_s': f'{self._window_s:g}', 'processed': str(processed),
+            'fallback': str(fallback), 'missed_or_stale': str(lost),
+            'rejected': str(rejected), 'scan_period_s': f'{period_s:.4f}',
+            'latency_median_ms': f'{1e3 * median_s:.1f}' if median_s is not None else 'n/a',
+            'latency_p95_ms': f'{1e3 * p95_s:.1f}' if p95_s is not None else 'n/a',
+        }
+        values.update({f'total_{k}': str(v) for k, v in sorted(current.items())})
+        return Assessment(level, message, values)
+
+
+def diagnostic_array(assessment: Assessment, stamp, name: str,
+                     hardware_id: str) -> DiagnosticArray:
+    status = DiagnosticStatus(level=assessment.level, name=name, message=assessment.message,
+                              hardware_id=hardware_id,
+                              values=[KeyValue(key=k, value=v)
+                                      for k, v in assessment.values.items()])
+    return DiagnosticArray(header=Header(stamp=stamp),
+                           status=[status])
