@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from soak_node import build_node, ping_pong  # noqa: E402
+from soak_node import build_node, ping_pong, spinner, wait_for_node  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 NODE = '/filter_odom_node'
@@ -56,14 +56,18 @@ def main(argv=None) -> int:
             REPO / 'config' / 'fastdds_large_messages.xml')
     else:
         os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
-    import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
 
     from gft_odom.io.bags import ScanBagReader
     from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
-    from gft_odom.ros.through_node import ros_message_from_bag, stop_node_process
+    from gft_odom.ros.through_node import (
+        ros_message_from_bag,
+        start_feeder,
+        stop_feeder,
+        stop_node_process,
+    )
     from gft_odom.sim.writer import simulate_to_bag
 
     work = Path(tempfile.mkdtemp(prefix='gft_realtime_'))
@@ -86,11 +90,7 @@ def main(argv=None) -> int:
     with open(node_log, 'w') as log_file:
         proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
 
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node('realtime_feeder', context=context)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    context, node, executor = start_feeder('realtime_feeder', domain_id)
     answered: dict[int, float] = {}
     node.create_subscription(
         Odometry, f'{NODE}/odometry',
@@ -100,17 +100,8 @@ def main(argv=None) -> int:
            else QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     pub = node.create_publisher(PointCloud2, TOPIC, qos)
 
-    def spin_for(seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=max(0.0, min(0.005, end - time.monotonic())))
-
-    deadline = time.monotonic() + 60.0
-    while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/odometry')):
-        if time.monotonic() > deadline or proc.poll() is not None:
-            raise SystemExit(f'node did not come up; log: {node_log}')
-        spin_for(0.05)
-    spin_for(2.0)
+    spin_for = spinner(executor)
+    wait_for_node(node, pub, proc, node_log, spin_for)
 
     period_s = 1.0 / args.rate_hz
     sent: dict[int, float] = {}
@@ -132,9 +123,7 @@ def main(argv=None) -> int:
             spin_for(next_send - time.monotonic())
         spin_for(3.0)  # answers still in flight
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        stop_feeder(context, node, executor)
         stop_node_process(proc, timeout_s=20.0)
 
     stamps = np.array(sorted(sent))

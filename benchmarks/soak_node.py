@@ -92,6 +92,25 @@ def pose_errors(sent_index: np.ndarray, answered_T: list, truth_base: np.ndarray
     return np.linalg.norm(est @ R.T + t - ref, axis=1)
 
 
+def spinner(executor):
+    """spin_for(seconds): run the executor's callbacks for that long."""
+    def spin_for(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=max(0.0, min(0.005, end - time.monotonic())))
+    return spin_for
+
+
+def wait_for_node(node, pub, proc, node_log, spin_for, timeout_s: float = 60.0) -> None:
+    """Until the node subscribes to `pub` and publishes odometry (or exit with its log)."""
+    deadline = time.monotonic() + timeout_s
+    while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/odometry')):
+        if time.monotonic() > deadline or proc.poll() is not None:
+            raise SystemExit(f'node did not come up; log: {node_log}')
+        spin_for(0.05)
+    spin_for(2.0)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--minutes', type=float, default=10.0)
@@ -108,7 +127,6 @@ def main(argv=None) -> int:
     parser.add_argument('--docs', default=str(REPO / 'docs'))
     args = parser.parse_args(argv)
 
-    import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from scipy.spatial.transform import Rotation
@@ -120,7 +138,12 @@ def main(argv=None) -> int:
     from gft_odom.io.tum import read_tum
     from gft_odom.pipeline import base_to_sensor
     from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
-    from gft_odom.ros.through_node import ros_message_from_bag, stop_node_process
+    from gft_odom.ros.through_node import (
+        ros_message_from_bag,
+        start_feeder,
+        stop_feeder,
+        stop_node_process,
+    )
     from gft_odom.sim.simulator import ScanSimulator, SimConfig
     from gft_odom.sim.writer import simulate_to_bag
 
@@ -154,11 +177,7 @@ def main(argv=None) -> int:
         proc = subprocess.Popen([str(exe), *ros_args], env=env,
                                 stdout=log_file, stderr=subprocess.STDOUT)
 
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node('soak_feeder', context=context)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    context, node, executor = start_feeder('soak_feeder', domain_id)
     answered: dict[int, float] = {}
     poses: dict[int, np.ndarray] = {}
 
@@ -176,17 +195,8 @@ def main(argv=None) -> int:
     pub = node.create_publisher(PointCloud2, TOPIC,
                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
 
-    def spin_for(seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=max(0.0, min(0.005, end - time.monotonic())))
-
-    deadline = time.monotonic() + 60.0
-    while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/odometry')):
-        if time.monotonic() > deadline or proc.poll() is not None:
-            raise SystemExit(f'node did not come up; log: {node_log}')
-        spin_for(0.05)
-    spin_for(2.0)
+    spin_for = spinner(executor)
+    wait_for_node(node, pub, proc, node_log, spin_for)
 
     period_s = 1.0 / args.rate_hz
     sent: dict[int, float] = {}
@@ -220,9 +230,7 @@ def main(argv=None) -> int:
             spin_for(min(next_send, next_rss) - time.monotonic())
         spin_for(3.0)  # the answers still in flight
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        stop_feeder(context, node, executor)
         stop_node_process(proc, timeout_s=20.0)
 
     stamps = np.array(sorted(sent))

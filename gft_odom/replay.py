@@ -190,6 +190,7 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
 
 
 def write_json(path: Path, data: dict) -> None:
+    """Write `data` as indented JSON, atomically."""
     write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True) + '\n')
 
 

@@ -56,6 +56,7 @@ class BenchSequence:
 
     @property
     def name(self) -> str:
+        """The method name used in tables and results folders."""
         return f'{self.scenario}-{self.seed}'
 
 
@@ -70,6 +71,7 @@ class MethodRun:
 
     @property
     def metrics(self) -> dict:
+        """Flat metrics of this run (accuracy, latency, points, fallbacks)."""
         return self.replay.metrics
 
 

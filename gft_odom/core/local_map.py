@@ -66,10 +66,12 @@ class LocalMap:
 
     @property
     def points_xyz(self) -> np.ndarray:
+        """The map points (world frame), all keyframes merged."""
         return np.asarray(self.cloud.points)
 
     @property
     def n_keyframes(self) -> int:
+        """Number of keyframes in the map."""
         return len(self._keyframes)
 
     def needs_keyframe(self, T_world_sensor: np.ndarray) -> bool:

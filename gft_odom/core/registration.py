@@ -208,6 +208,7 @@ class RegistrationResult:
 
     @property
     def fell_back(self) -> bool:
+        """True when ICP was not trusted and the prediction was used."""
         return self.status.startswith('fallback')
 
 

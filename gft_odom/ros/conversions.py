@@ -20,6 +20,7 @@ def stamp_to_ns(stamp) -> int:
 
 
 def ns_to_stamp(stamp_ns: int) -> Time:
+    """builtin_interfaces/Time of an integer nanosecond stamp."""
     sec, nanosec = ns_to_sec_nanosec(stamp_ns)
     return Time(sec=sec, nanosec=nanosec)
 
@@ -41,6 +42,7 @@ def blob_to_msg(blob: CloudBlob, stamp_ns: int, frame_id: str) -> PointCloud2:
 
 
 def pose_msg(T: np.ndarray) -> Pose:
+    """geometry_msgs/Pose of a 4x4 transform."""
     xyz, quat = xyz_quat_from_poses(T[None])
     pose = Pose()
     pose.position.x, pose.position.y, pose.position.z = (float(v) for v in xyz[0])
@@ -51,6 +53,7 @@ def pose_msg(T: np.ndarray) -> Pose:
 
 def odometry_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str, base_frame: str,
                  covariance: np.ndarray) -> Odometry:
+    """nav_msgs/Odometry of odom -> base_link with its pose covariance."""
     msg = Odometry()
     msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=odom_frame)
     msg.child_frame_id = base_frame
@@ -60,6 +63,7 @@ def odometry_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str, base_f
 
 
 def pose_stamped_msg(T: np.ndarray, stamp_ns: int, frame_id: str) -> PoseStamped:
+    """geometry_msgs/PoseStamped of a 4x4 transform."""
     msg = PoseStamped()
     msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
     msg.pose = pose_msg(T)
@@ -68,6 +72,7 @@ def pose_stamped_msg(T: np.ndarray, stamp_ns: int, frame_id: str) -> PoseStamped
 
 def transform_msg(T_parent_child: np.ndarray, stamp_ns: int, parent: str,
                   child: str) -> TransformStamped:
+    """geometry_msgs/TransformStamped parent -> child of a 4x4 transform."""
     msg = TransformStamped()
     msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=parent)
     msg.child_frame_id = child

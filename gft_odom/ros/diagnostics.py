@@ -23,6 +23,7 @@ OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.E
 
 @dataclass
 class Assessment:
+    """One verdict: level, message and the values behind it."""
     level: bytes
     message: str
     values: dict[str, str]
@@ -36,6 +37,7 @@ class OdometryDiagnostics:
         self._window_s = window_s
 
     def assess(self, now_s: float, counters, latencies_s, period_s: float) -> Assessment:
+        """OK / WARN / ERROR over the last window from counters and latencies."""
         current = dict(counters)
         self._snapshots.append((now_s, current))
         while self._snapshots and now_s - self._snapshots[0][0] > self._window_s:
@@ -87,6 +89,7 @@ class OdometryDiagnostics:
 
 def diagnostic_array(assessment: Assessment, stamp, name: str,
                      hardware_id: str) -> DiagnosticArray:
+    """diagnostic_msgs/DiagnosticArray of one assessment."""
     status = DiagnosticStatus(level=assessment.level, name=name, message=assessment.message,
                               hardware_id=hardware_id,
                               values=[KeyValue(key=k, value=v)

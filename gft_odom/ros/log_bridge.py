@@ -23,6 +23,7 @@ class RosLogHandler(logging.Handler):
         self._suppressed: dict[tuple[str, str], int] = {}
 
     def emit(self, record: logging.LogRecord) -> None:
+        """Forward one Python log record to the node logger (throttled)."""
         key = (record.name, str(record.msg))
         now_s = time.monotonic()
         last_s = self._last_s.get(key)

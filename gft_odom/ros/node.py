@@ -312,6 +312,7 @@ class FilterOdomNode(Node):
         return response
 
     def destroy_node(self) -> None:
+        """Log the final counts, stop forwarding Python logging, then destroy."""
         stop_forwarding(self._log_handler)
         super().destroy_node()
 
@@ -334,6 +335,7 @@ def _interrupt(signum, frame) -> None:
 
 
 def main(args=None) -> None:
+    """Entry point of `ros2 run gft_odom filter_odom_node`."""
     node = None
     try:
         check_params_files(sys.argv if args is None else args)

@@ -32,6 +32,7 @@ _FIELD = re.compile(r'^\s+(\w+)\s*:')
 
 
 def is_startup_only(name: str) -> bool:
+    """Whether the parameter is read at start-up only (a change needs a restart)."""
     return name.startswith(STARTUP_ONLY_PREFIXES)
 
 
@@ -80,6 +81,7 @@ def describe(name: str) -> str:
 
 
 def descriptor(name: str) -> ParameterDescriptor:
+    """ParameterDescriptor from the dataclass field: description, unit, read-only."""
     return ParameterDescriptor(name=name, description=describe(name),
                                read_only=is_startup_only(name))
 

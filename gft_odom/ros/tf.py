@@ -21,6 +21,7 @@ class TfPublisher:
         self.sent = None
 
     def send(self, transform) -> None:
+        """Publish one TransformStamped on /tf."""
         self.sent = transform
         self._pub.publish(self._message_type(transforms=[transform]))
 

@@ -87,6 +87,24 @@ def ros_message_from_bag(raw) -> PointCloud2:
     return blob_to_msg(blob, stamp_to_ns(raw.header.stamp), str(raw.header.frame_id))
 
 
+def start_feeder(name: str, domain_id: int):
+    """(context, node, executor): an rclpy node of its own context in `domain_id`, to feed
+    the node under test and read its answers."""
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node(name, context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    return context, node, executor
+
+
+def stop_feeder(context, node, executor) -> None:
+    """Undo `start_feeder`."""
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
 def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                         gt_path: str | Path | None = None, topic: str = '/velodyne_points',
                         max_scans: int | None = None,
@@ -115,11 +133,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     log.info('starting %s (ROS_DOMAIN_ID=%d)', ' '.join(cmd), domain_id)
     with open(node_log, 'w') as log_file:
         proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node('gft_odom_replay_feeder', context=context)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    context, node, executor = start_feeder('gft_odom_replay_feeder', domain_id)
     odometry: dict[int, np.ndarray] = {}
     kept_points: dict[int, int] = {}
     last_path: list = []
@@ -200,9 +214,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             skipped = getattr(reader, 'skipped', 0)
         failed = not stamps
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        stop_feeder(context, node, executor)
         stop_node_process(proc)
         # The temporary folder goes, unless it holds the log an error message points to.
         if not (failed and node_log.parent == work):

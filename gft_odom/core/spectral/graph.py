@@ -18,12 +18,16 @@ from scipy.spatial import cKDTree
 from gft_odom.errors import SpectralError
 
 
-def gaussian_graph(xy_m: np.ndarray, slice_of_point: np.ndarray | None, tau_m: float,
-                   sigma_m: float, dtype=np.float64) -> sp.csr_matrix:
-    """Symmetric weight matrix W (n, n), CSR, zero diagonal; no edge ever joins two slices."""
+def _check_edge_scales(tau_m: float, sigma_m: float) -> None:
     if not tau_m > 0.0 or not sigma_m > 0.0:
         raise SpectralError(f'tau_m and sigma_m must be > 0, got tau_m={tau_m}, '
                             f'sigma_m={sigma_m}')
+
+
+def gaussian_graph(xy_m: np.ndarray, slice_of_point: np.ndarray | None, tau_m: float,
+                   sigma_m: float, dtype=np.float64) -> sp.csr_matrix:
+    """Symmetric weight matrix W (n, n), CSR, zero diagonal; no edge ever joins two slices."""
+    _check_edge_scales(tau_m, sigma_m)
     xy_m = np.asarray(xy_m, dtype=np.float64)
     n = xy_m.shape[0]
     if n < 2:
@@ -66,6 +70,7 @@ class GraphLaplacian:
         return d * x - self.W @ x
 
     def diagonal(self) -> np.ndarray:
+        """The diagonal of L: the weighted degrees."""
         return self.degree
 
     def block(self, lo: int, hi: int) -> sp.csr_matrix:
@@ -74,9 +79,11 @@ class GraphLaplacian:
         return (sp.diags(self.degree[lo:hi]) - Wb).tocsr()
 
     def tocsr(self) -> sp.csr_matrix:
+        """L as a CSR matrix."""
         return self.block(0, self.shape[0])
 
     def toarray(self) -> np.ndarray:
+        """L as a dense array (small graphs only)."""
         return self.tocsr().toarray()
 
 
@@ -213,9 +220,7 @@ def scan_line_graph(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float, sigm
     firing order. Edges across rings were measured to add nothing to what the frequency says
     about the surface (docs/method.md), and without them L is tridiagonal.
     """
-    if not tau_m > 0.0 or not sigma_m > 0.0:
-        raise SpectralError(f'tau_m and sigma_m must be > 0, got tau_m={tau_m}, '
-                            f'sigma_m={sigma_m}')
+    _check_edge_scales(tau_m, sigma_m)
     xyz = np.asarray(points_xyz, dtype=np.float64)
     n = xyz.shape[0]
     if n < 2:

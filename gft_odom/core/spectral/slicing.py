@@ -30,10 +30,12 @@ class Slices:
 
     @property
     def n_slices(self) -> int:
+        """Number of non-empty slices."""
         return int(self.starts.shape[0] - 1)
 
     @property
     def sizes(self) -> np.ndarray:
+        """Points per slice."""
         return np.diff(self.starts)
 
 
