@@ -123,9 +123,20 @@ def main(argv=None) -> int:
                         help='params file for the node (default: the package defaults)')
     parser.add_argument('--azimuth-step-deg', type=float, default=0.4,
                         help='0.2 is the real VLP-16; 0.4 halves the points per scan')
+    parser.add_argument('--driver-profile', choices=('default', 'large'), default='large',
+                        help="this feeder's (the driver's) Fast DDS transports: the defaults, or "
+                             'config/fastdds_large_messages.xml, as the README asks of a driver '
+                             '(full-resolution clouds are larger than the default 512 KB '
+                             'shared-memory segment)')
     parser.add_argument('--out', default=str(REPO / 'benchmarks' / 'results'))
     parser.add_argument('--docs', default=str(REPO / 'docs'))
     args = parser.parse_args(argv)
+    if args.driver_profile == 'large':
+        # Before the first participant of this process; the node picks it up by itself.
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
+            REPO / 'config' / 'fastdds_large_messages.xml')
+    else:
+        os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
 
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy

@@ -184,7 +184,7 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
             metrics.update(TrajectoryEvaluator.from_config(config.evaluation)
                            .evaluate(estimate, replay.ground_truth))
         except GroundTruthError as exc:
-            raise GroundTruthError(f'cannot evaluate against the ground truth: {exc}') from None
+            raise GroundTruthError(f'cannot evaluate against the ground truth: {exc}') from exc
         metrics['ground_truth_frame'] = 'gps_antenna' if replay.ground_truth_is_gps else 'sensor'
     return metrics
 
@@ -223,7 +223,7 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
         out.parent.mkdir(parents=True, exist_ok=True)
         partial = make_temp_dir(out.parent, prefix=f'{out.name}.partial-')
     except OSError as exc:
-        raise GftOdomError(f'cannot create results folder {out}: {exc}') from None
+        raise GftOdomError(f'cannot create results folder {out}: {exc}') from exc
     try:
         tmp = {key: partial / name for key, name in names.items()}
         write_tum(tmp['trajectory'], replay.base_trajectory)
@@ -246,7 +246,7 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
             replace(partial, out)
     except OSError as exc:
         shutil.rmtree(partial, ignore_errors=True)
-        raise GftOdomError(f'cannot write results to {out}: {exc}') from None
+        raise GftOdomError(f'cannot write results to {out}: {exc}') from exc
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise

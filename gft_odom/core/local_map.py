@@ -54,7 +54,6 @@ class LocalMap:
         self.with_covariances = with_covariances
         self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max_keyframes)
         self.cloud = o3d.geometry.PointCloud()
-        self.n_rebuilds = 0
 
     def __len__(self) -> int:
         return len(self.cloud.points)
@@ -68,11 +67,6 @@ class LocalMap:
     def points_xyz(self) -> np.ndarray:
         """The map points (world frame), all keyframes merged."""
         return np.asarray(self.cloud.points)
-
-    @property
-    def n_keyframes(self) -> int:
-        """Number of keyframes in the map."""
-        return len(self._keyframes)
 
     def needs_keyframe(self, T_world_sensor: np.ndarray) -> bool:
         """True when the sensor moved or turned enough since the last keyframe."""
@@ -108,4 +102,3 @@ class LocalMap:
             if self.with_covariances:
                 cloud.estimate_covariances(search)
         self.cloud = cloud
-        self.n_rebuilds += 1

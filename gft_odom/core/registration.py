@@ -39,7 +39,12 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from gft_odom.core.constants import SCAN_PERIOD_S
-from gft_odom.core.deskew import azimuth_time_offsets, deskew_points, planar_delta
+from gft_odom.core.deskew import (
+    azimuth_time_offsets,
+    deskew_points,
+    planar_delta,
+    twist_from_delta,
+)
 from gft_odom.core.geometry import invert_transform, make_transform, transform_points
 from gft_odom.core.local_map import LocalMap, to_cloud, voxel_downsample_indices
 from gft_odom.errors import ConfigError, RegistrationError
@@ -223,7 +228,8 @@ def scale_delta(T: np.ndarray, factor: float) -> np.ndarray:
 
 def twist_of(T_prev_curr: np.ndarray, dt_s: float) -> np.ndarray:
     """(rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s and m/s of a motion lasting `dt_s`."""
-    return np.r_[Rotation.from_matrix(T_prev_curr[:3, :3]).as_rotvec(), T_prev_curr[:3, 3]] / dt_s
+    omega, velocity = twist_from_delta(T_prev_curr, dt_s)
+    return np.r_[omega, velocity]
 
 
 def transform_magnitude(T: np.ndarray) -> tuple[float, float]:
