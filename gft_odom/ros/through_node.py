@@ -105,17 +105,10 @@ def stop_feeder(context, node, executor) -> None:
     rclpy.try_shutdown(context=context)
 
 
-def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
-                        gt_path: str | Path | None = None, topic: str = '/velodyne_points',
-                        max_scans: int | None = None,
-                        progress: Callable[[int, int], None] | None = None,
-                        node_exe: str | None = None, scan_timeout_s: float = 20.0,
-                        env: dict[str, str] | None = None,
-                        log_path: str | Path | None = None) -> ReplayResult:
-    """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
-    exe = find_node_executable(node_exe)
-    ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
-    env = dict(os.environ if env is None else env)
+def _launch_node(exe: Path, config: GftOdomConfig, topic: str, env: dict[str, str],
+                 log_path: str | Path | None):
+    """Start filter_odom_node with the config as its params file, sim time and lockstep QoS:
+    (process, temporary folder, node log, domain id)."""
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     env.setdefault('ROS_DOMAIN_ID', str(random.randint(100, 200)))
     domain_id = int(env['ROS_DOMAIN_ID'])
@@ -133,108 +126,160 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     log.info('starting %s (ROS_DOMAIN_ID=%d)', ' '.join(cmd), domain_id)
     with open(node_log, 'w') as log_file:
         proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
-    context, node, executor = start_feeder('gft_odom_replay_feeder', domain_id)
-    odometry: dict[int, np.ndarray] = {}
-    kept_points: dict[int, int] = {}
-    last_path: list = []
-    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    # The node's odometry is latched: poses published before our reader was matched arrive.
-    latched = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    node.create_subscription(Odometry, f'/{NODE_NAME}/odometry',
-                             lambda m: odometry.__setitem__(stamp_to_ns(m.header.stamp),
-                                                            odometry_to_pose(m)), latched)
-    node.create_subscription(PathMsg, f'/{NODE_NAME}/path',
-                             lambda m: last_path.__setitem__(slice(None), [m]),
-                             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    node.create_subscription(PointCloud2, f'/{NODE_NAME}/filtered_points',
-                             lambda m: kept_points.__setitem__(stamp_to_ns(m.header.stamp),
-                                                               m.width * m.height),
-                             qos_profile_sensor_data)
-    clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10))
-    cloud_pub = node.create_publisher(PointCloud2, topic, reliable)
+    return proc, work, node_log, domain_id
 
-    def spin_until(done: Callable[[], bool], timeout_s: float) -> bool:
+
+class _Feeder:
+    """The feeding side: publishes /clock and the clouds, records what the node answers."""
+
+    def __init__(self, proc, node_log: Path, domain_id: int, topic: str) -> None:
+        """Subscriptions to the node's odometry, path and filtered clouds; the publishers."""
+        self.proc, self.node_log = proc, node_log
+        self.context, self.node, self.executor = start_feeder('gft_odom_replay_feeder',
+                                                              domain_id)
+        self.odometry: dict[int, np.ndarray] = {}
+        self.kept_points: dict[int, int] = {}
+        self.last_path: list = []
+        # The node's odometry is latched: poses published before our reader was matched arrive.
+        latched = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node.create_subscription(
+            Odometry, f'/{NODE_NAME}/odometry',
+            lambda m: self.odometry.__setitem__(stamp_to_ns(m.header.stamp),
+                                                odometry_to_pose(m)), latched)
+        self.node.create_subscription(
+            PathMsg, f'/{NODE_NAME}/path',
+            lambda m: self.last_path.__setitem__(slice(None), [m]),
+            QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.node.create_subscription(
+            PointCloud2, f'/{NODE_NAME}/filtered_points',
+            lambda m: self.kept_points.__setitem__(stamp_to_ns(m.header.stamp),
+                                                   m.width * m.height),
+            qos_profile_sensor_data)
+        self.clock_pub = self.node.create_publisher(Clock, '/clock', QoSProfile(depth=10))
+        self.cloud_pub = self.node.create_publisher(
+            PointCloud2, topic, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        self.last_sent_s = 0.0
+
+    def spin_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
+        """Spin until `done()` (True) or the timeout (False); NodeProcessError if it exits."""
         deadline = time.monotonic() + timeout_s
         while not done():
-            if proc.poll() is not None:
-                raise NodeProcessError(f'filter_odom_node exited with code {proc.returncode}; '
-                                       f'its log: {node_log}\n{node_log.read_text()[-2000:]}')
+            if self.proc.poll() is not None:
+                raise NodeProcessError(
+                    f'filter_odom_node exited with code {self.proc.returncode}; its log: '
+                    f'{self.node_log}\n{self.node_log.read_text()[-2000:]}')
             if time.monotonic() > deadline:
                 return False
-            executor.spin_once(timeout_sec=0.02)
+            self.executor.spin_once(timeout_sec=0.02)
         return True
 
+    def wait_for_node(self) -> None:
+        """Until the node subscribes to the clouds and publishes odometry, plus a margin."""
+        if not self.spin_until(lambda: self.cloud_pub.get_subscription_count() > 0
+                               and self.node.count_publishers(f'/{NODE_NAME}/odometry') > 0,
+                               60.0):
+            raise NodeProcessError(f'filter_odom_node did not come up within 60 s '
+                                   f'({self.node_log})')
+        # Seeing each other in the graph is not yet matched endpoints both ways: give DDS a
+        # moment, or the first odometry can go out before our subscription is matched.
+        self.spin_until(lambda: False, 2.0)
+
+    def send(self, msg, scan_timeout_s: float) -> bool:
+        """Publish the clock and the cloud, again until its odometry comes back."""
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        # Never faster than the sensor: back-to-back 0.5 MB best-effort clouds were seen to
+        # be lost whole on this machine (every resend of the same scan).
+        self.spin_until(lambda: False,
+                        self.last_sent_s + MIN_SEND_INTERVAL_S - time.monotonic())
+        self.clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
+        got = False
+        deadline = time.monotonic() + scan_timeout_s
+        while not got and time.monotonic() < deadline:
+            self.cloud_pub.publish(msg)
+            self.last_sent_s = time.monotonic()
+            got = self.spin_until(lambda: stamp_ns in self.odometry, RESEND_AFTER_S)
+        return got
+
+    def close(self) -> None:
+        """Stop the feeder node and the node process."""
+        stop_feeder(self.context, self.node, self.executor)
+        stop_node_process(self.proc)
+
+
+def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
+                        gt_path: str | Path | None = None, topic: str = '/velodyne_points',
+                        max_scans: int | None = None,
+                        progress: Callable[[int, int], None] | None = None,
+                        node_exe: str | None = None, scan_timeout_s: float = 20.0,
+                        env: dict[str, str] | None = None,
+                        log_path: str | Path | None = None) -> ReplayResult:
+    """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
+    exe = find_node_executable(node_exe)
+    ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
+    proc, work, node_log, domain_id = _launch_node(
+        exe, config, topic, dict(os.environ if env is None else env), log_path)
+    feeder = _Feeder(proc, node_log, domain_id, topic)
     stamps, latency, points_in, statuses = [], [], [], []
     failed = True
     try:
-        if not spin_until(lambda: cloud_pub.get_subscription_count() > 0
-                          and node.count_publishers(f'/{NODE_NAME}/odometry') > 0, 60.0):
-            raise NodeProcessError(f'filter_odom_node did not come up within 60 s ({node_log})')
-        # Seeing each other in the graph is not yet matched endpoints both ways: give DDS a
-        # moment, or the first odometry can go out before our subscription is matched.
-        spin_until(lambda: False, 2.0)
+        feeder.wait_for_node()
         with ScanBagReader(list(bag_paths), topic=topic) as reader:
             total = len(reader) if max_scans is None else min(len(reader), max_scans)
-            last_sent_s = 0.0
-            for i, (stamp_ns, raw) in enumerate(reader.iter_messages()):
+            for i, (_, raw) in enumerate(reader.iter_messages()):
                 if i >= total:
                     break
                 msg = ros_message_from_bag(raw)
-                stamp_ns = stamp_to_ns(msg.header.stamp)
-                # Never faster than the sensor: back-to-back 0.5 MB best-effort clouds were
-                # seen to be lost whole on this machine (every resend of the same scan).
-                spin_until(lambda: False, last_sent_s + MIN_SEND_INTERVAL_S - time.monotonic())
-                clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
                 t0 = time.perf_counter()
-                # Sensor-data QoS is best effort: a ~0.5 MB cloud is fragmented and may be lost
-                # under load, so it is sent again until its odometry comes back (the node
-                # ignores a copy it has already processed).
-                got = False
-                deadline = time.monotonic() + scan_timeout_s
-                while not got and time.monotonic() < deadline:
-                    cloud_pub.publish(msg)
-                    last_sent_s = time.monotonic()
-                    got = spin_until(lambda: stamp_ns in odometry, RESEND_AFTER_S)
+                got = feeder.send(msg, scan_timeout_s)
                 latency.append(time.perf_counter() - t0)
                 if got:
                     points_in.append(msg.width * msg.height)
-                    stamps.append(stamp_ns)
+                    stamps.append(stamp_to_ns(msg.header.stamp))
                     statuses.append('ok')
                 else:
                     log.warning('no odometry for the scan at %d ns within %.0f s (the node '
-                                'skipped it; see %s)', stamp_ns, scan_timeout_s, node_log)
+                                'skipped it; see %s)', stamp_to_ns(msg.header.stamp),
+                                scan_timeout_s, node_log)
                     statuses.append('no_answer')
                 if progress is not None:
                     progress(i + 1, total)
             # The last filtered cloud, and the Path (the node sends it once a second).
-            spin_until(lambda: False, 0.5)
+            feeder.spin_until(lambda: False, 0.5)
             path_length = min(len(stamps), config.node.path_max_length)
-            spin_until(lambda: bool(last_path) and len(last_path[0].poses) >= path_length, 3.0)
+            feeder.spin_until(lambda: bool(feeder.last_path)
+                              and len(feeder.last_path[0].poses) >= path_length, 3.0)
             skipped = getattr(reader, 'skipped', 0)
         failed = not stamps
     finally:
-        stop_feeder(context, node, executor)
-        stop_node_process(proc)
+        feeder.close()
         # The temporary folder goes, unless it holds the log an error message points to.
         if not (failed and node_log.parent == work):
             shutil.rmtree(work, ignore_errors=True)
     if not stamps:
         raise NodeProcessError(f'filter_odom_node answered none of the {len(statuses)} scans '
                                f'sent; its log: {node_log}')
-    T_base_sensor = base_to_sensor(config)
-    base_poses = np.array([odometry[s] for s in stamps]).reshape(-1, 4, 4)
+    return _replay_result(config, feeder, stamps, latency, points_in, statuses, skipped,
+                          ground_truth, gt_path, node_log if log_path else None)
+
+
+def _replay_result(config, feeder: _Feeder, stamps, latency, points_in, statuses, skipped,
+                   ground_truth, gt_path, node_log) -> ReplayResult:
+    """The ReplayResult (and its metrics) of what the node answered."""
+    base_poses = np.array([feeder.odometry[s] for s in stamps]).reshape(-1, 4, 4)
     base = Trajectory(np.array(stamps, dtype=np.int64), base_poses)
-    sensor = Trajectory(base.stamps_ns, base_to_sensor_poses(base.poses, T_base_sensor))
+    sensor = Trajectory(base.stamps_ns,
+                        base_to_sensor_poses(base.poses, base_to_sensor(config)))
     replay = ReplayResult(
         sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
         stage_s={'round_trip': np.asarray(latency)}, points_in=np.asarray(points_in),
         # Best-effort like every sensor stream: a lost filtered cloud counts as -1.
-        points_kept=np.array([kept_points.get(s, -1) for s in stamps]), statuses=statuses,
-        skipped_messages=skipped, ground_truth=ground_truth,
+        points_kept=np.array([feeder.kept_points.get(s, -1) for s in stamps]),
+        statuses=statuses, skipped_messages=skipped, ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
     replay.metrics = summarize(replay, config)
-    replay.metrics['node_path_length'] = len(last_path[0].poses) if last_path else 0
-    if log_path:
+    replay.metrics['node_path_length'] = (len(feeder.last_path[0].poses) if feeder.last_path
+                                          else 0)
+    if node_log is not None:
         replay.metrics['node_log'] = str(node_log)
     return replay
