@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+SERVICE_ATTEMPTS = 3  # requests sent before a service counts as not answering
 # Plain helper modules beside this file (helpers.py) are importable from every test.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -125,8 +126,12 @@ def ros_service_caller(ros_node):
         if name not in clients:
             clients[name] = node.create_client(srv_type, name)
         assert clients[name].wait_for_service(timeout_sec=timeout_s), f'no service {name}'
-        future = clients[name].call_async(request)
-        assert spin_until(future.done, 10.0), f'{name} did not answer'
-        return future.result()
+        # A service seen is not yet a response path matched both ways: the first answer can
+        # be lost, so an unanswered (idempotent) request is sent again.
+        for _ in range(SERVICE_ATTEMPTS):
+            future = clients[name].call_async(request)
+            if spin_until(future.done, 10.0):
+                return future.result()
+        raise AssertionError(f'{name} did not answer {SERVICE_ATTEMPTS} requests')
 
     return call
