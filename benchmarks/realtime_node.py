@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import random
 import re
 import subprocess
@@ -25,7 +24,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from soak_node import build_node, ping_pong, spinner, wait_for_node  # noqa: E402
+from soak_node import (  # noqa: E402
+    add_driver_profile_argument,
+    build_node,
+    ping_pong,
+    spinner,
+    use_driver_profile,
+    wait_for_node,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 NODE = '/filter_odom_node'
@@ -43,31 +49,19 @@ def main(argv=None) -> int:
                         help='extra --ros-args for the node, e.g. -p node.input_queue_depth:=5')
     parser.add_argument('--env', action='append', default=[], metavar='NAME=VALUE',
                         help='extra environment of the node process')
-    parser.add_argument('--driver-profile', choices=('default', 'large'), default='large',
-                        help="the publisher's (the driver's) Fast DDS transports: the defaults, "
-                             'or config/fastdds_large_messages.xml (as the README says)')
+    add_driver_profile_argument(parser)
     parser.add_argument('--tag', default='', help='suffix of the result file name')
     parser.add_argument('--out', default=str(REPO / 'benchmarks' / 'results'))
     args = parser.parse_args(argv)
 
-    if args.driver_profile == 'large':
-        # Before the first participant of this process; the node picks it up by itself.
-        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
-            REPO / 'config' / 'fastdds_large_messages.xml')
-    else:
-        os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
+    use_driver_profile(args.driver_profile)
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
 
     from gft_odom.io.bags import ScanBagReader
+    from gft_odom.ros import through_node
     from gft_odom.ros.conversions import ns_to_stamp, stamp_to_ns
-    from gft_odom.ros.through_node import (
-        ros_message_from_bag,
-        start_feeder,
-        stop_feeder,
-        stop_node_process,
-    )
     from gft_odom.sim.writer import simulate_to_bag
 
     work = Path(tempfile.mkdtemp(prefix='gft_realtime_'))
@@ -75,7 +69,7 @@ def main(argv=None) -> int:
           flush=True)
     sim = simulate_to_bag(work / 'sim', n_scans=args.scans, seed=101, topdown_png=False)
     with ScanBagReader([sim.bag_path]) as reader:
-        messages = [ros_message_from_bag(raw) for _, raw in reader.iter_messages()]
+        messages = [through_node.ros_message_from_bag(raw) for _, raw in reader.iter_messages()]
     points_per_scan = float(np.mean([m.width * m.height for m in messages]))
     bytes_per_scan = float(np.mean([len(m.data) for m in messages]))
     exe, env = build_node(work / 'ws')
@@ -90,7 +84,7 @@ def main(argv=None) -> int:
     with open(node_log, 'w') as log_file:
         proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
 
-    context, node, executor = start_feeder('realtime_feeder', domain_id)
+    context, node, executor = through_node.start_feeder('realtime_feeder', domain_id)
     answered: dict[int, float] = {}
     node.create_subscription(
         Odometry, f'{NODE}/odometry',
@@ -123,8 +117,8 @@ def main(argv=None) -> int:
             spin_for(next_send - time.monotonic())
         spin_for(3.0)  # answers still in flight
     finally:
-        stop_feeder(context, node, executor)
-        stop_node_process(proc, timeout_s=20.0)
+        through_node.stop_feeder(context, node, executor)
+        through_node.stop_node_process(proc, timeout_s=20.0)
 
     stamps = np.array(sorted(sent))
     latency_ms = np.array([1e3 * (answered[s] - sent[s]) if s in answered else np.nan

@@ -92,6 +92,25 @@ def pose_errors(sent_index: np.ndarray, answered_T: list, truth_base: np.ndarray
     return np.linalg.norm(est @ R.T + t - ref, axis=1)
 
 
+def add_driver_profile_argument(parser) -> None:
+    """--driver-profile: the feeder's (the driver's) Fast DDS transports."""
+    parser.add_argument('--driver-profile', choices=('default', 'large'), default='large',
+                        help="the feeder's (the driver's) Fast DDS transports: the defaults, or "
+                             'config/fastdds_large_messages.xml, as the README asks of a driver '
+                             '(full-resolution clouds are larger than the default 512 KB '
+                             'shared-memory segment)')
+
+
+def use_driver_profile(choice: str) -> None:
+    """Set (or clear) this process's Fast DDS profile, before its first participant; the node
+    picks the large-message profile up by itself."""
+    if choice == 'large':
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
+            REPO / 'config' / 'fastdds_large_messages.xml')
+    else:
+        os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
+
+
 def spinner(executor):
     """spin_for(seconds): run the executor's callbacks for that long."""
     def spin_for(seconds: float) -> None:
@@ -123,20 +142,11 @@ def main(argv=None) -> int:
                         help='params file for the node (default: the package defaults)')
     parser.add_argument('--azimuth-step-deg', type=float, default=0.4,
                         help='0.2 is the real VLP-16; 0.4 halves the points per scan')
-    parser.add_argument('--driver-profile', choices=('default', 'large'), default='large',
-                        help="this feeder's (the driver's) Fast DDS transports: the defaults, or "
-                             'config/fastdds_large_messages.xml, as the README asks of a driver '
-                             '(full-resolution clouds are larger than the default 512 KB '
-                             'shared-memory segment)')
+    add_driver_profile_argument(parser)
     parser.add_argument('--out', default=str(REPO / 'benchmarks' / 'results'))
     parser.add_argument('--docs', default=str(REPO / 'docs'))
     args = parser.parse_args(argv)
-    if args.driver_profile == 'large':
-        # Before the first participant of this process; the node picks it up by itself.
-        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
-            REPO / 'config' / 'fastdds_large_messages.xml')
-    else:
-        os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
+    use_driver_profile(args.driver_profile)
 
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
