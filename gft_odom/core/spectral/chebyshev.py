@@ -143,8 +143,6 @@ def lambda_max_lanczos(L, starts: np.ndarray, n_iter: int = 30,
     n = L.shape[0]
     if n == 0 or n_blocks == 0:
         return np.zeros(n_blocks)
-    if n_blocks == 1:
-        return np.array([_lanczos_one_block(L, n_iter, seed)])
     sizes = np.diff(starts)
     block = np.repeat(np.arange(n_blocks), sizes)
     v = np.random.default_rng(seed).standard_normal(n)
@@ -179,42 +177,6 @@ def lambda_max_lanczos(L, starts: np.ndarray, n_iter: int = 30,
         # turns the estimate from below into a (slightly) safe one from above.
         lmax[s] = theta[0] + abs(betas[m - 1, s] * y[-1, 0])
     return lmax
-
-
-def _lanczos_one_block(L, n_iter: int, seed: int) -> float:
-    """`lambda_max_lanczos` for a graph of one block (the scan-line graph): plain sums instead
-    of segment sums, the same recursion and residual correction. Inner products use `einsum`,
-    not `a @ b`: a BLAS dot spawns threads that stall for hundreds of ms on a loaded 2-core
-    machine (measured: median 830 ms vs 3 ms for 10 iterations)."""
-    n = L.shape[0]
-    v = np.random.default_rng(seed).standard_normal(n)
-    v /= np.sqrt(np.einsum('i,i->', v, v))
-    v_prev = np.zeros(n)
-    w = np.empty(n)
-    beta_prev = 0.0
-    alphas, betas = [], []
-    for _ in range(min(n_iter, n)):
-        np.multiply(L.degree, v, out=w)
-        w -= L.W @ v
-        alpha = float(np.einsum('i,i->', w, v))
-        w -= alpha * v
-        if beta_prev:
-            w -= beta_prev * v_prev
-        beta = float(np.sqrt(max(float(np.einsum('i,i->', w, w)), 0.0)))
-        alphas.append(alpha)
-        betas.append(beta)
-        if not beta > 1e-10 * max(abs(alpha), 1.0):
-            betas[-1] = 0.0
-            break
-        v_prev, v = v, w / beta
-        beta_prev = beta
-    m = len(alphas)
-    if m == 1:
-        return alphas[0]
-    theta, y = scipy.linalg.eigh_tridiagonal(
-        np.array(alphas), np.array(betas[:m - 1]), select='i', select_range=(m - 1, m - 1),
-        check_finite=False)
-    return float(theta[0] + abs(betas[m - 1] * y[-1, 0]))
 
 
 def lambda_max_arpack(L, starts: np.ndarray, tol: float = 1e-6) -> np.ndarray:

@@ -132,17 +132,23 @@ def make_definition(config) -> FrequencyDefinition:
                             f'(one of {sorted(REGISTRY)})') from None
 
 
+def _ldos_mean(L: GraphLaplacian, lmax_per_node: np.ndarray) -> np.ndarray:
+    """sum_l nu_l v_l(m)^2 = L_mm / lambda_max (0 where the block has no edge)."""
+    degree = np.asarray(L.degree, dtype=np.float64)
+    return np.where(lmax_per_node > 0.0,
+                    degree / np.where(lmax_per_node > 0.0, lmax_per_node, 1.0), 0.0)
+
+
 def ldos_moments(L: GraphLaplacian, lmax_per_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First and second moments of every vertex's LDOS on nu = lambda / lambda_max, exactly.
 
     sum_l nu_l v_l(m)^2 = L_mm / lambda_max and sum_l nu_l^2 v_l(m)^2 = [L^2]_mm / lambda_max^2
     with [L^2]_mm = d_m^2 + sum_n W_mn^2 (W has a zero diagonal).
     """
-    degree = np.asarray(L.degree, dtype=np.float64)
-    safe = np.where(lmax_per_node > 0.0, lmax_per_node, 1.0)
+    mean = _ldos_mean(L, lmax_per_node)
     w2 = np.asarray(L.W.multiply(L.W).sum(axis=1)).ravel()
-    mean = np.where(lmax_per_node > 0.0, degree / safe, 0.0)
-    second = np.where(lmax_per_node > 0.0, (degree * degree + w2) / (safe * safe), 0.0)
+    safe = np.where(lmax_per_node > 0.0, lmax_per_node, 1.0)
+    second = np.where(lmax_per_node > 0.0, (L.degree * L.degree + w2) / (safe * safe), 0.0)
     return mean, second
 
 
@@ -154,10 +160,7 @@ class LdosMean(FrequencyDefinition):
 
     def assign(self, graph: SpectralGraph, n_bands: int) -> NodeFrequencies:
         """Band of the exact LDOS mean."""
-        degree = np.asarray(graph.L.degree, dtype=np.float64)
-        lmax = graph.node_lmax()
-        nu = np.clip(np.where(lmax > 0.0, degree / np.where(lmax > 0.0, lmax, 1.0), 0.0),
-                     0.0, 1.0)
+        nu = np.clip(_ldos_mean(graph.L, graph.node_lmax()), 0.0, 1.0)
         return NodeFrequencies(nu, band_of_nu(nu, n_bands))
 
 
@@ -204,17 +207,15 @@ class KpmLdos(FrequencyDefinition):
         return NodeFrequencies(nu, band, energy)
 
 
-class _ExactBlocks:
-    """Which blocks the exact path handles (solver 'exact', small enough), once per graph."""
-
-    @staticmethod
-    def split(graph: SpectralGraph, config) -> tuple[list[int], np.ndarray]:
-        sizes = np.diff(graph.starts)
-        exact = ([s for s in range(len(sizes)) if sizes[s] <= config.exact_max_slice_points]
-                 if config.solver == 'exact' else [])
-        cheb = np.ones(len(sizes), dtype=bool)
-        cheb[exact] = False
-        return exact, cheb & (sizes > 0)
+def _exact_blocks(graph: SpectralGraph, config) -> tuple[list[int], np.ndarray]:
+    """(blocks the exact path handles: solver 'exact' and small enough, the other non-empty
+    blocks as a mask)."""
+    sizes = np.diff(graph.starts)
+    exact = ([s for s in range(len(sizes)) if sizes[s] <= config.exact_max_slice_points]
+             if config.solver == 'exact' else [])
+    cheb = np.ones(len(sizes), dtype=bool)
+    cheb[exact] = False
+    return exact, cheb & (sizes > 0)
 
 
 @register
@@ -226,7 +227,7 @@ class SignalFrequency(FrequencyDefinition):
 
     def prepare(self, graph: SpectralGraph) -> None:
         """Chebyshev terms T_k(M) X for the blocks the exact path does not take."""
-        exact, cheb = _ExactBlocks.split(graph, self.config)
+        exact, cheb = _exact_blocks(graph, self.config)
         graph.prepared['exact_blocks'] = exact
         graph.prepared['terms'] = graph.prepared['terms_rows'] = None
         if not np.any(cheb):

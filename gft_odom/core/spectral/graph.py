@@ -57,11 +57,9 @@ class GraphLaplacian:
     `block`, `tocsr`, `toarray`).
     """
 
-    def __init__(self, W: sp.spmatrix, degree: np.ndarray | None = None) -> None:
-        """`degree`: the row sums of W when the caller has them already."""
-        self.W = W if isinstance(W, sp.csr_matrix) else sp.csr_matrix(W)
-        self.degree = (np.asarray(self.W.sum(axis=1)).ravel() if degree is None
-                       else np.asarray(degree, dtype=np.float64))
+    def __init__(self, W: sp.spmatrix) -> None:
+        self.W = sp.csr_matrix(W)
+        self.degree = np.asarray(self.W.sum(axis=1)).ravel()
         self.shape = self.W.shape
         self.dtype = self.W.dtype
 
@@ -237,11 +235,6 @@ def scan_line_graph(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float, sigm
 def scan_line_edges(points_xyz: np.ndarray, ring: np.ndarray, tau_m: float = np.inf
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The scan-line graph's edges (i, j) as input indices, each edge once (within `tau_m`)."""
-    xyz = np.asarray(points_xyz, dtype=np.float64)
-    if xyz.shape[0] < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order, same_ring = scan_line_order(xyz, ring)
-    xyz = np.take(xyz, order, axis=0)
-    d = np.linalg.norm(xyz[1:] - xyz[:-1], axis=1)
-    k = np.flatnonzero(same_ring & (d <= tau_m))
+    L, order = scan_line_graph(points_xyz, ring, tau_m, sigma_m=np.inf)  # every weight 1
+    k = np.flatnonzero(L.w_next > 0.0)
     return order[k], order[k + 1]
