@@ -377,6 +377,17 @@ class BagWriter:
             raise BagError(f'cannot write {msgtype} on {topic} to {self.path}: {exc}') from exc
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
+    def write_metadata(self, topic: str, stamp_ns: int, key: str, text: str) -> None:
+        """Record `text` in the bag: rosbag2 custom_data[`key`]; a ROS 1 bag has no such
+        field, so there it is one std_msgs/String on `topic`."""
+        if self._writer is None:
+            raise BagError(f'bag {self.path} is not open')
+        if self.fmt == 'ros2':
+            self._writer.set_custom_data(key, text)
+            return
+        self.write_message(topic, 'std_msgs/msg/String', stamp_ns,
+                           self.typestore.types['std_msgs/msg/String'](data=text))
+
     def write_cloud(self, topic: str, stamp_ns: int, blob: CloudBlob, frame_id: str,
                     log_time_ns: int | None = None) -> None:
         """One sensor_msgs/PointCloud2 made from the codec's output; logged at `log_time_ns`

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from gft_odom.errors import SimulationError
 from gft_odom.sim.orchard import HEADLAND_M, Orchard
+from gft_odom.sim.variation import MAX_SPEED_MPS, MIN_CRUISE_MPS, OrchardVariation
 
 SCENARIOS = ('row', 'uturn', 'loop')
 
@@ -213,3 +214,183 @@ def make_motion(orchard: Orchard, scenario: str, duration_s: float, speed_mps: f
         lateral_wobble_phase_rad=float(rng.uniform(0.0, 2.0 * np.pi)),
         yaw_wobble_rad=float(yaw_wobble_rad), yaw_wobble_hz=float(rng.uniform(0.2, 0.5)),
         yaw_wobble_phase_rad=float(rng.uniform(0.0, 2.0 * np.pi)))
+
+
+# --- CitrusFarm-like routes over many lanes, driven with a varied speed profile ---------------
+
+ROUTES = ('lawnmower', 'every_other_row', 'spiral', 'out_and_back')
+# A pivot (turn on the spot) is an arc this tight: the yaw-rate limit then sets a crawl.
+PIVOT_RADIUS_M = 0.05
+# Sampling of the route path and the slowest the integration of ds / v lets the robot go.
+ROUTE_STEP_M = 0.02
+_CRAWL_MPS = 0.02
+
+
+def _straight(p, heading, length_m, step):
+    """Samples (uv, heading) of a straight piece of `length_m` from `p` along `heading`."""
+    n = max(2, int(np.ceil(length_m / step)) + 1)
+    d = np.linspace(0.0, length_m, n)
+    uv = np.asarray(p, float) + d[:, None] * np.array([np.cos(heading), np.sin(heading)])
+    return uv, np.full(n, heading)
+
+
+def _turn(p, heading, angle_rad, radius_m, step):
+    """Samples of an arc of `radius_m` turning by `angle_rad` (> 0 left) from pose (p, heading)."""
+    side = np.sign(angle_rad)
+    centre = np.asarray(p, float) + side * radius_m * np.array([-np.sin(heading),
+                                                                np.cos(heading)])
+    n = max(3, int(np.ceil(abs(angle_rad) * max(radius_m, 0.2) / step)) + 1)
+    h = heading + np.linspace(0.0, angle_rad, n)
+    # Position on the circle: centre - side r (-sin h, cos h).
+    uv = centre - side * radius_m * np.column_stack([-np.sin(h), np.cos(h)])
+    return uv, h
+
+
+def route_lanes(route: str, n_lanes: int) -> list[int]:
+    """The order in which `route` drives lanes 0..n_lanes-1 (CitrusFarm's route shapes)."""
+    if route == 'lawnmower':
+        return list(range(n_lanes))
+    if route == 'every_other_row':
+        # Out every other lane, back along the ones skipped.
+        out = list(range(0, n_lanes, 2))
+        back = [lane for lane in range(n_lanes - 1, -1, -1) if lane % 2 == 1]
+        return out + back
+    if route == 'spiral':
+        # Square spiral: outermost lanes first, closing in on the middle.
+        order, lo, hi = [], 0, n_lanes - 1
+        while lo <= hi:
+            order.append(lo)
+            if hi != lo:
+                order.append(hi)
+            lo, hi = lo + 1, hi - 1
+        return order
+    if route == 'out_and_back':
+        # Each lane out and back again (a pivot at the far end), then the next lane.
+        return [lane for lane in range(n_lanes) for _ in (0, 1)]
+    raise SimulationError(f'unknown route {route!r}; choose one of {ROUTES}')
+
+
+def route_lane_count(route: str, distance_m: float, row_length_m: float) -> int:
+    """Lanes a route needs for about `distance_m` with rows `row_length_m` long (>= 2)."""
+    per_lane = row_length_m + 2.0 * TURN_CLEARANCE_M + 4.0
+    passes = max(2, int(np.ceil(distance_m / per_lane)))
+    return int(np.ceil(passes / 2)) if route == 'out_and_back' else passes
+
+
+def _route_path(orchard: Orchard, route: str, lanes: list[int], turn_radius_m: float,
+                step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Route path in the row frame: (uv, heading, lane index per sample, -1 in headlands)."""
+    u0, u1 = orchard.row_start_u_m, orchard.row_end_u_m
+    v = [orchard.lane_v_m(lane) for lane in lanes]
+    pieces_uv, pieces_h, pieces_lane = [], [], []
+
+    def add(piece, lane_index):
+        uv, h = piece
+        if pieces_uv:
+            uv, h = uv[1:], h[1:]
+        pieces_uv.append(uv)
+        pieces_h.append(h)
+        pieces_lane.append(np.full(len(h), lane_index))
+
+    heading = 0.0
+    add(_straight((u0 - 1.0, v[0]), heading, u1 - u0 + 1.0, step), 0)
+    for i in range(1, len(lanes)):
+        p = pieces_uv[-1][-1]
+        dv = v[i] - v[i - 1]
+        # Turn towards the next lane: left when it lies to the left of the heading.
+        side = np.sign(np.cos(heading) * dv) if abs(dv) > 1e-9 else 1.0
+        radius = PIVOT_RADIUS_M if abs(dv) < 1e-9 else float(
+            np.clip(turn_radius_m, PIVOT_RADIUS_M, 0.5 * abs(dv)))
+        over = TURN_CLEARANCE_M - radius
+        if abs(dv) < 1e-9:
+            # Out and back: drive into the headland, pivot half a turn, come back.
+            add(_straight(p, heading, TURN_CLEARANCE_M, step), -1)
+            p = pieces_uv[-1][-1]
+            add(_turn(p, heading, side * np.pi, radius, step), -1)
+            heading += side * np.pi
+            p = pieces_uv[-1][-1]
+            add(_straight(p, heading, TURN_CLEARANCE_M, step), -1)
+        else:
+            add(_straight(p, heading, over, step), -1)
+            for _ in range(2):
+                p = pieces_uv[-1][-1]
+                add(_turn(p, heading, side * 0.5 * np.pi, radius, step), -1)
+                heading += side * 0.5 * np.pi
+                if _ == 0:
+                    p = pieces_uv[-1][-1]
+                    add(_straight(p, heading, abs(dv) - 2.0 * radius, step), -1)
+            p = pieces_uv[-1][-1]
+            add(_straight(p, heading, over, step), -1)
+        p = pieces_uv[-1][-1]
+        add(_straight(p, heading, u1 - u0, step), i)
+    uv = np.concatenate(pieces_uv)
+    return uv, np.unwrap(np.concatenate(pieces_h)), np.concatenate(pieces_lane)
+
+
+def _speed_profile(s: np.ndarray, curvature: np.ndarray, lane_of_sample: np.ndarray,
+                   variation: OrchardVariation, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Speed at every path sample: per-lane cruise, yaw-rate and acceleration limits, stops
+    from rest to rest. Returns (speed, stop sample indices, stop durations)."""
+    n_lanes = int(lane_of_sample.max()) + 1
+    jitter = 1.0 + variation.lane_speed_jitter * rng.uniform(-1.0, 1.0, n_lanes)
+    cruise = np.clip(variation.cruise_speed_mps * jitter, MIN_CRUISE_MPS, MAX_SPEED_MPS)
+    headland = min(variation.cruise_speed_mps, 0.8)
+    speed = np.where(lane_of_sample >= 0, cruise[np.maximum(lane_of_sample, 0)], headland)
+    speed = np.minimum(speed, variation.max_yaw_rate_rps / np.maximum(curvature, 1e-9))
+    n_stops = rng.poisson(variation.stops_per_100m * s[-1] / 100.0)
+    stops = np.sort(np.searchsorted(s, rng.uniform(0.05, 0.95, n_stops) * s[-1]))
+    durations = rng.uniform(1.0, variation.stop_duration_s, stops.size)
+    speed[stops] = 0.0
+    speed[0] = speed[-1] = 0.0
+    ds = np.diff(s)
+    two_a = 2.0 * variation.max_accel_mps2
+    for i in range(1, s.size):  # accelerate no faster than max_accel (forward pass)
+        speed[i] = min(speed[i], np.sqrt(speed[i - 1] ** 2 + two_a * ds[i - 1]))
+    for i in range(s.size - 2, -1, -1):  # and brake no harder (backward pass)
+        speed[i] = min(speed[i], np.sqrt(speed[i + 1] ** 2 + two_a * ds[i]))
+    return speed, stops, durations
+
+
+def make_route_motion(orchard: Orchard, route: str, n_lanes: int,
+                      variation: OrchardVariation, seed: int = 0,
+                      lateral_wobble_m: float = 0.05,
+                      yaw_wobble_rad: float = 0.02) -> RobotMotion:
+    """Drive `route` over lanes 0..n_lanes-1 of `orchard` with the speeds of `variation`.
+
+    The drive starts and ends at rest; stops hold the robot still for a few seconds.
+    """
+    lanes = route_lanes(route, n_lanes)
+    if max(lanes) > len(orchard.row_v_m) - 2:
+        raise SimulationError(f'route {route!r} needs {max(lanes) + 2} rows, the orchard has '
+                              f'{len(orchard.row_v_m)}')
+    uv, heading, lane_of_sample = _route_path(orchard, route, lanes, variation.turn_radius_m,
+                                              ROUTE_STEP_M)
+    seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+    # A pivot arc is shorter than its samples' spacing suggests; keep s strictly increasing.
+    seg = np.maximum(seg, 1e-4)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    curvature = np.abs(np.gradient(heading, s))
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x40711]))
+    speed, stops, durations = _speed_profile(s, curvature, lane_of_sample, variation, rng)
+    v_mid = np.maximum(0.5 * (speed[1:] + speed[:-1]), _CRAWL_MPS)
+    t = np.concatenate([[0.0], np.cumsum(seg / v_mid)])
+    # A stop: the same sample twice, `duration` apart (t stays strictly increasing).
+    if stops.size:
+        keep_order = np.argsort(np.concatenate([np.arange(s.size), stops]), kind='stable')
+        dwell = np.zeros(s.size + stops.size)
+        position = np.empty_like(keep_order)
+        position[keep_order] = np.arange(keep_order.size)
+        dwell[position[s.size + np.arange(stops.size)]] = durations
+        s = np.concatenate([s, s[stops]])[keep_order]
+        uv = np.concatenate([uv, uv[stops]])[keep_order]
+        heading = np.concatenate([heading, heading[stops]])[keep_order]
+        t = np.concatenate([t, t[stops]])[keep_order] + np.cumsum(dwell)
+    wobble_rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x40710]))
+    return RobotMotion(
+        orchard=orchard, s_m=s, uv_m=uv, heading_rad=heading, t_s=t, closed=False,
+        lateral_wobble_m=float(lateral_wobble_m),
+        lateral_wobble_wavelength_m=float(wobble_rng.uniform(6.0, 12.0)),
+        lateral_wobble_phase_rad=float(wobble_rng.uniform(0.0, 2.0 * np.pi)),
+        yaw_wobble_rad=float(yaw_wobble_rad), yaw_wobble_hz=float(wobble_rng.uniform(0.2, 0.5)),
+        yaw_wobble_phase_rad=float(wobble_rng.uniform(0.0, 2.0 * np.pi)))

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from gft_odom.errors import SimulationError
+from gft_odom.sim.variation import OrchardVariation
 
 # Surface codes, one per kind of primitive (also the `label` of simulated points).
 GROUND = 0
@@ -33,6 +34,9 @@ SURFACE_NAMES = ('ground', 'trunk', 'canopy', 'post', 'pipe', 'building', 'vehic
 
 # Headland from the outermost trees to the row-end objects: room for the robot to turn.
 HEADLAND_M = 9.0
+# Wheel ruts along the lanes (varied simulator only): offset from the lane centre, width.
+RUT_OFFSET_M = 0.19
+RUT_WIDTH_M = 0.12
 
 
 @dataclass(frozen=True)
@@ -187,34 +191,63 @@ def _smooth_noise(rng: np.random.Generator, shape, sigma_cells: float) -> np.nda
 
 
 def _make_ground(rng: np.random.Generator, lo_xy: np.ndarray, hi_xy: np.ndarray,
-                 resolution_m: float) -> Heightfield:
+                 resolution_m: float, variation: OrchardVariation | None = None) -> Heightfield:
     """Gentle slope + slow undulation (tens of cm over tens of m) + bumps (a few cm) +
-    roughness (about a centimetre)."""
+    roughness (about a centimetre); `variation` sets the slope and the three amplitudes."""
     n = np.ceil((hi_xy - lo_xy) / resolution_m).astype(int) + 2
     xs = lo_xy[0] + resolution_m * np.arange(n[0])
     ys = lo_xy[1] + resolution_m * np.arange(n[1])
     slope_dir = rng.uniform(0.0, 2.0 * np.pi)
     slope = rng.uniform(0.005, 0.025)  # 0.5-2.5 %
+    undulation_m, bump_m, roughness_m = 0.25, 0.04, 0.01
+    if variation is not None:
+        slope = variation.slope
+        undulation_m, bump_m = variation.undulation_std_m, variation.bump_std_m
+        roughness_m = variation.roughness_std_m
     gx, gy = slope * np.cos(slope_dir), slope * np.sin(slope_dir)
     xc, yc = 0.5 * (lo_xy + hi_xy)
     z = gx * (xs[:, None] - xc) + gy * (ys[None, :] - yc)
     # Smooth components on coarse grids (cheap), upsampled bilinearly: undulation (0.25 m std
     # over ~12 m) and bumps (4 cm std over ~1.5 m).
-    for cell_m, sigma_cells, std_m in ((4.0, 3.0, 0.25), (0.5, 3.0, 0.04)):
+    for cell_m, sigma_cells, std_m in ((4.0, 3.0, undulation_m), (0.5, 3.0, bump_m)):
         cn = np.ceil((hi_xy - lo_xy) / cell_m).astype(int) + 2
         coarse = Heightfield(lo_xy.copy(), cell_m,
                              std_m * _smooth_noise(rng, tuple(cn), sigma_cells))
         z = z + coarse.height(xs[:, None], ys[None, :])
-    z = z + 0.01 * _smooth_noise(rng, tuple(n), 1.0)  # roughness, ~1 cm
+    z = z + roughness_m * _smooth_noise(rng, tuple(n), 1.0)  # roughness, ~1 cm
     return Heightfield(np.array([xs[0], ys[0]]), resolution_m, z)
 
 
+def _add_ruts(ground: Heightfield, rot: np.ndarray, origin: np.ndarray, lane_v: np.ndarray,
+              u_lo: float, u_hi: float, depth_m: float) -> Heightfield:
+    """Wheel ruts pressed `depth_m` into every lane: two tracks RUT_OFFSET_M either side of
+    the lane centre (where the robot's own wheels run), Gaussian profile RUT_WIDTH_M wide.
+    The 0.25 m heightfield samples them coarsely: a rut is a shallow trough in the grid."""
+    nx, ny = ground.z_m.shape
+    xs = ground.origin_xy_m[0] + ground.resolution_m * np.arange(nx)
+    ys = ground.origin_xy_m[1] + ground.resolution_m * np.arange(ny)
+    gx, gy = np.meshgrid(xs, ys, indexing='ij')
+    uv = np.stack([gx - origin[0], gy - origin[1]], axis=-1) @ rot  # world -> row frame
+    u, v = uv[..., 0], uv[..., 1]
+    # Distance across the lane to the nearest rut (at +-RUT_OFFSET_M of each lane centre).
+    nearest_lane = lane_v[np.clip(np.searchsorted(lane_v, v), 0, lane_v.size - 1)]
+    other_lane = lane_v[np.clip(np.searchsorted(lane_v, v) - 1, 0, lane_v.size - 1)]
+    d_lane = np.minimum(np.abs(v - nearest_lane), np.abs(v - other_lane))
+    d_track = np.abs(d_lane - RUT_OFFSET_M)
+    along = (u >= u_lo) & (u <= u_hi)
+    rut = depth_m * np.exp(-0.5 * (d_track / RUT_WIDTH_M) ** 2) * along
+    return Heightfield(ground.origin_xy_m, ground.resolution_m, ground.z_m - rut)
+
+
 def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
-                     ground_resolution_m: float = 0.25, margin_m: float = 60.0) -> Orchard:
+                     ground_resolution_m: float = 0.25, margin_m: float = 60.0,
+                     variation: OrchardVariation | None = None) -> Orchard:
     """Build an orchard from `seed`: `n_rows` rows of trees about `row_length_m` long.
 
     `margin_m` is how far the ground extends beyond the row-end objects (the heightfield is
-    clamped beyond that, i.e. flat-ish far away).
+    clamped beyond that, i.e. flat-ish far away). `variation` (see sim/variation.py) replaces
+    the fixed ranges with one drawn orchard; without it the orchard is what it always was for
+    this seed (the random stream is the same either way).
     """
     if n_rows < 2:
         raise SimulationError(f'n_rows must be >= 2 (a lane needs two rows), got {n_rows}')
@@ -227,6 +260,9 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
     row_spacing = rng.uniform(5.5, 7.0)
     tree_spacing = rng.uniform(3.0, 5.0)
     missing_fraction = rng.uniform(0.06, 0.14)
+    if variation is not None:
+        row_spacing, tree_spacing = variation.row_spacing_m, variation.tree_spacing_m
+        missing_fraction = variation.missing_fraction
     heading = rng.uniform(-np.pi, np.pi)
     origin = rng.uniform(-40.0, 40.0, size=2)
     rot = np.array([[np.cos(heading), -np.sin(heading)], [np.sin(heading), np.cos(heading)]])
@@ -243,7 +279,11 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
                            [row_end_u + HEADLAND_M + 12.0, row_v[-1] + row_spacing + 12.0]])
     corners = corners_uv @ rot.T + origin
     ground = _make_ground(rng, corners.min(axis=0) - margin_m, corners.max(axis=0) + margin_m,
-                          ground_resolution_m)
+                          ground_resolution_m, variation)
+    if variation is not None and variation.rut_depth_m > 0.0:
+        ground = _add_ruts(ground, rot, origin, 0.5 * (row_v[1:] + row_v[:-1]),
+                           row_start_u - HEADLAND_M, row_end_u + HEADLAND_M,
+                           variation.rut_depth_m)
 
     def world_xy(u, v):
         return np.stack([u, v], axis=-1) @ rot.T + origin
@@ -259,6 +299,14 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
     trunk_z = ground.height(trunk_xy[:, 0], trunk_xy[:, 1]) - 0.05  # rooted slightly below
     trunk_r = rng.uniform(0.06, 0.15, n_trees)
     trunk_len = rng.uniform(0.4, 0.9, n_trees)
+    # Young trees (replanted gaps): a thin, short trunk under a small crown.
+    tree_scale = np.ones(n_trees)
+    if variation is not None:
+        young = rng.random(n_trees) < variation.young_fraction
+        tree_scale = np.where(young, rng.uniform(0.3, 0.6, n_trees), 1.0) * \
+            variation.canopy_scale
+        trunk_r = trunk_r * variation.trunk_radius_scale * np.where(young, 0.5, 1.0)
+        trunk_len = trunk_len * np.where(young, 0.7, 1.0)
     lean = np.abs(rng.normal(0.0, np.deg2rad(4.0), n_trees))
     lean_dir = rng.uniform(0.0, 2.0 * np.pi, n_trees)
     trunk_axis = np.stack([np.sin(lean) * np.cos(lean_dir), np.sin(lean) * np.sin(lean_dir),
@@ -268,9 +316,9 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
 
     # Canopies skirt low: their bottom sits 0-0.35 m below the trunk top, at least 0.2 m above
     # the ground, so the lower trunk shows and the upper trunk hides inside the crown.
-    along = rng.uniform(1.2, 2.2, n_trees)
-    across = np.minimum(rng.uniform(1.2, 2.2, n_trees), 0.5 * row_spacing - 1.0)
-    vertical = rng.uniform(1.0, 2.0, n_trees)
+    along = rng.uniform(1.2, 2.2, n_trees) * tree_scale
+    across = np.minimum(rng.uniform(1.2, 2.2, n_trees) * tree_scale, 0.5 * row_spacing - 1.0)
+    vertical = rng.uniform(1.0, 2.0, n_trees) * tree_scale
     ground_at_tree = trunk_z + 0.05
     bottom = np.maximum(trunk_top[:, 2] - rng.uniform(0.0, 0.35, n_trees), ground_at_tree + 0.2)
     canopy_centre = np.column_stack([trunk_top[:, :2] + rng.normal(0.0, 0.1, (n_trees, 2)),

@@ -24,8 +24,16 @@ from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
 from gft_odom.io.ground_truth import GroundTruthConfig
 from gft_odom.sim.lidar import SURFACE_REFLECTIVITY, Vlp16Model, cast_rays
-from gft_odom.sim.motion import RobotMotion, make_motion, required_row_length_m
+from gft_odom.sim.motion import (
+    ROUTES,
+    RobotMotion,
+    make_motion,
+    make_route_motion,
+    required_row_length_m,
+    route_lane_count,
+)
 from gft_odom.sim.orchard import Orchard, generate_orchard
+from gft_odom.sim.variation import OrchardVariation
 
 
 @dataclass(frozen=True)
@@ -151,6 +159,55 @@ class ScanSimulator:
         motion = make_motion(orchard, scenario, duration_s, config.speed_mps, seed,
                              config.lateral_wobble_m, config.yaw_wobble_rad)
         return cls(orchard, motion, config, seed)
+
+    @classmethod
+    def for_drive(cls, config: SimConfig, scenario: str, seed: int, n_scans: int | None = None,
+                  distance_m: float = 300.0, vary: bool = False
+                  ) -> tuple['ScanSimulator', OrchardVariation | None]:
+        """The simulator of one drive, and the variation it was drawn with (None: fixed).
+
+        `scenario` is one of the short scenarios (row, uturn, loop: `n_scans` sweeps) or one
+        of the routes (lawnmower, every_other_row, spiral, out_and_back: about `distance_m`
+        of driving, the whole route unless `n_scans` cuts it short). `vary` draws orchard,
+        terrain, driving, mount and wind from the seed (sim/variation.py).
+        """
+        variation = OrchardVariation.draw(seed) if vary else None
+        if variation is not None:
+            config = replace(
+                config, speed_mps=variation.cruise_speed_mps,
+                canopy_mean_free_path_m=variation.canopy_mean_free_path_m,
+                wind_amplitude_m=variation.wind_amplitude_m,
+                base_to_sensor_xyz_m=(config.base_to_sensor_xyz_m[0],
+                                      config.base_to_sensor_xyz_m[1],
+                                      variation.mount_height_m),
+                base_to_sensor_rpy_rad=(variation.mount_roll_rad, variation.mount_pitch_rad,
+                                        config.base_to_sensor_rpy_rad[2]))
+        config.validate()
+        if scenario not in ROUTES:
+            if n_scans is None:
+                raise ConfigError(f'scenario {scenario!r} needs a number of scans')
+            if variation is None:
+                return cls.from_config(config, scenario, n_scans, seed), None
+            duration_s = (int(n_scans) + 1) / config.scan_rate_hz
+            row_length_m = required_row_length_m(scenario, duration_s * config.speed_mps)
+            orchard = generate_orchard(seed, n_rows=config.n_rows, row_length_m=row_length_m,
+                                       variation=variation)
+            motion = make_motion(orchard, scenario, duration_s, config.speed_mps, seed,
+                                 config.lateral_wobble_m, config.yaw_wobble_rad)
+            return cls(orchard, motion, config, seed), variation
+        route_variation = variation or OrchardVariation.nominal()
+        n_lanes = route_lane_count(scenario, distance_m, route_variation.row_length_m)
+        orchard = generate_orchard(seed, n_rows=n_lanes + 2,
+                                   row_length_m=route_variation.row_length_m,
+                                   variation=variation)
+        motion = make_route_motion(orchard, scenario, n_lanes, route_variation, seed,
+                                   config.lateral_wobble_m, config.yaw_wobble_rad)
+        return cls(orchard, motion, config, seed), variation
+
+    @property
+    def n_scans_in_drive(self) -> int:
+        """Sweeps that fit in the drive (the last one ends before the motion does)."""
+        return max(1, int(np.floor(self.motion.duration_s * self.config.scan_rate_hz)) - 1)
 
     def stamp_ns(self, index: int) -> int:
         """Header stamp of sweep `index` (the sweep start)."""

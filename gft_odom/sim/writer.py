@@ -14,8 +14,9 @@ pose is not the identity.
 
 from __future__ import annotations
 
+import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -25,13 +26,19 @@ from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import SimulationError
-from gft_odom.sim.motion import SCENARIOS
+from gft_odom.io.atomic import write_text_atomic
+from gft_odom.sim.motion import ROUTES, SCENARIOS
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
+from gft_odom.sim.variation import OrchardVariation
 
 log = logging.getLogger(__name__)
 
 LIDAR_TOPIC = '/velodyne_points'
 GPS_TOPIC = '/gps/fix/odometry'
+# The drive's metadata: a file beside the bag, a custom_data key / a ROS 1 topic inside it.
+METADATA_FILE = 'sim_metadata.json'
+METADATA_KEY = 'gft_odom.sim'
+METADATA_TOPIC = '/gft_odom/sim_metadata'
 # GPS fixes are not synchronised with the LiDAR: they start this long after the first sweep.
 GPS_PHASE_S = 0.037
 # Points kept for the picture (a stride over each scan keeps memory bounded on long runs).
@@ -67,12 +74,17 @@ def bag_path_for(out_dir: Path, scenario: str, seed: int, fmt: str) -> Path:
     return Path(out_dir) / (name + '.bag' if fmt == 'ros1' else name)
 
 
-def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 100,
+def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | None = 100,
                     seed: int = 0, config: SimConfig | None = None, fmt: str = 'ros2',
                     storage: str = 'sqlite3', topdown_png: bool = True,
-                    progress: Callable[[int], None] | None = None) -> SimulationResult:
+                    progress: Callable[[int], None] | None = None,
+                    distance_m: float = 300.0, vary: bool = False) -> SimulationResult:
     """Simulate `n_scans` sweeps of `scenario` in the orchard of `seed`; write the dataset.
 
+    Routes (lawnmower, every_other_row, spiral, out_and_back) drive about `distance_m`;
+    `n_scans=None` simulates the whole route. `vary` draws the orchard, terrain, driving,
+    mount and wind from the seed; the draws go into `sim_metadata.json` beside the bag and
+    into the bag (rosbag2 custom_data, a ROS 1 bag a std_msgs/String on `METADATA_TOPIC`).
     `progress(k)` is called after each scan with the number of scans done. Nothing already
     written is overwritten: an existing bag raises SimulationError.
     """
@@ -82,13 +94,17 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
 
     config = config or SimConfig()
     config.validate()
-    if scenario not in SCENARIOS:
-        raise SimulationError(f'unknown scenario {scenario!r}; choose one of {SCENARIOS}')
+    if scenario not in SCENARIOS + ROUTES:
+        raise SimulationError(f'unknown scenario {scenario!r}; choose one of '
+                              f'{SCENARIOS + ROUTES}')
     if fmt not in ('ros1', 'ros2'):
         raise SimulationError(f'bag format must be ros1 or ros2, got {fmt!r}')
-    if int(n_scans) < 1:
+    if n_scans is None and scenario not in ROUTES:
+        raise SimulationError(f'scenario {scenario!r} needs a number of scans')
+    if n_scans is not None and int(n_scans) < 1:
         raise SimulationError(f'n_scans must be >= 1, got {n_scans}')
-    n_scans = int(n_scans)
+    if not distance_m > 0.0:
+        raise SimulationError(f'distance_m must be > 0, got {distance_m}')
     out_dir = Path(out_dir)
     bag_path = bag_path_for(out_dir, scenario, seed, fmt)
     if bag_path.exists():
@@ -96,9 +112,13 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
     gt_dir = out_dir / 'ground_truth'
     gt_dir.mkdir(parents=True, exist_ok=True)
 
+    sim, variation = ScanSimulator.for_drive(config, scenario, seed, n_scans, distance_m, vary)
+    config = sim.config
     period_s = 1.0 / config.scan_rate_hz
-    sim = ScanSimulator.from_config(config, scenario, n_scans, seed)
+    n_scans = min(int(n_scans), sim.n_scans_in_drive) if n_scans is not None and \
+        scenario in ROUTES else (int(n_scans) if n_scans is not None else sim.n_scans_in_drive)
     orchard = sim.orchard
+    metadata = drive_metadata(sim, scenario, seed, n_scans, variation)
     layout = VELODYNE_XYZIR_ROS1 if config.legacy_fields else VELODYNE_XYZIRT
     log.info('simulating %d scans of %r in orchard seed %d (%d rows, %.0f m long, rows %.1f m '
              'apart, trees %.1f m apart) -> %s', n_scans, scenario, seed, len(orchard.row_v_m),
@@ -119,6 +139,8 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
     merged: list[np.ndarray] = []
     gps_next = 0
     with BagWriter(bag_path, fmt=fmt, storage=storage) as writer:
+        writer.write_metadata(METADATA_TOPIC, sim.stamp_ns(0), METADATA_KEY,
+                              json.dumps(metadata, sort_keys=True))
         for k in range(n_scans):
             sim_scan = sim.scan(k)
             scan = sim_scan.scan
@@ -143,6 +165,10 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
                                   frame_id='map', child_frame_id='gps')
 
     write_tum(result.gt_tum_path, Trajectory(sensor_stamps, sensor_poses))
+    travelled = np.linalg.norm(np.diff(sensor_poses[:, :3, 3], axis=0), axis=1).sum()
+    metadata['distance_m'] = float(travelled)
+    write_text_atomic(out_dir / METADATA_FILE, json.dumps(metadata, indent=2,
+                                                          sort_keys=True) + '\n')
     _write_gt_csv(result.gt_csv_path, Trajectory(gps_stamps, T_world_gps))
     if topdown_png:
         points = np.concatenate(merged) if merged else np.zeros((0, 3), np.float32)
@@ -154,6 +180,38 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int = 1
     log.info('wrote %s (%d scans, median %.3f s/scan, %.0f points/scan)', bag_path, n_scans,
              result.median_seconds_per_scan, float(np.mean(result.points_per_scan)))
     return result
+
+
+def drive_metadata(sim: ScanSimulator, scenario: str, seed: int, n_scans: int,
+                   variation: OrchardVariation | None) -> dict:
+    """What a bag's drive was made of: scenario, seed, the effective SimConfig, the draws."""
+    orchard = sim.orchard
+    return {
+        'gft_odom_sim_version': 2,
+        'scenario': scenario,
+        'seed': int(seed),
+        'n_scans': int(n_scans),
+        'varied': variation is not None,
+        'variation': variation.as_dict() if variation is not None else None,
+        'sim_config': {k: (list(v) if isinstance(v, tuple) else v)
+                       for k, v in asdict(sim.config).items()},
+        'orchard': {'n_rows': int(len(orchard.row_v_m)),
+                    'row_spacing_m': float(orchard.row_spacing_m),
+                    'tree_spacing_m': float(orchard.tree_spacing_m),
+                    'row_length_m': float(orchard.row_end_u_m - orchard.row_start_u_m)},
+        'duration_s': float(sim.motion.duration_s),
+    }
+
+
+def read_drive_metadata(bag_path: str | Path) -> dict | None:
+    """The `sim_metadata.json` beside a simulated bag, or None for a bag from elsewhere."""
+    path = Path(bag_path).parent / METADATA_FILE
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SimulationError(f'cannot read the drive metadata {path}: {exc}') from exc
 
 
 def _write_gt_csv(path: Path, traj: Trajectory) -> None:

@@ -6,8 +6,8 @@ import argparse
 import dataclasses
 import logging
 
-from gft_odom.sim.motion import SCENARIOS
-from gft_odom.sim.simulator import SimConfig
+from gft_odom.sim.motion import ROUTES, SCENARIOS
+from gft_odom.sim.simulator import ScanSimulator, SimConfig
 from gft_odom.sim.writer import simulate_to_bag
 
 log = logging.getLogger(__name__)
@@ -21,10 +21,18 @@ DESCRIPTION = ('Simulate a VLP-16 on a Jackal in a synthetic citrus orchard and 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of `gft-odom simulate`."""
-    p.add_argument('--scenario', choices=SCENARIOS, default='row',
+    p.add_argument('--scenario', choices=SCENARIOS + ROUTES, default='row',
                    help='row: straight between two rows; uturn: down one row and back along '
-                        'the next; loop: around a block of rows (default: row)')
-    p.add_argument('--scans', type=int, default=300, help='number of sweeps (10 Hz)')
+                        'the next; loop: around a block of rows (default: row). Routes over '
+                        "many rows, like CitrusFarm's: lawnmower, every_other_row, spiral, "
+                        'out_and_back (about --distance-m long)')
+    p.add_argument('--scans', type=int, default=None,
+                   help='number of sweeps (10 Hz); default 300, or the whole route')
+    p.add_argument('--distance-m', type=float, default=300.0,
+                   help='length of a route in metres (default 300)')
+    p.add_argument('--vary', action='store_true',
+                   help='draw orchard, terrain, speeds, turns, mount and wind from the seed '
+                        '(ranges in docs/benchmarks.md); recorded in sim_metadata.json')
     p.add_argument('--seed', type=int, default=0, help='orchard and noise seed')
     p.add_argument('--out', required=True, help='output directory')
     p.add_argument('--format', choices=('ros2', 'ros1'), default='ros2', dest='fmt',
@@ -46,10 +54,18 @@ def run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(SimConfig(), motion_distortion=not args.no_distortion,
                                  legacy_fields=args.legacy_fields,
                                  azimuth_step_deg=args.azimuth_step_deg)
-    with tqdm(total=args.scans, unit='scan', desc=f'simulate {args.scenario}') as bar:
-        result = simulate_to_bag(args.out, args.scenario, args.scans, args.seed, config,
+    scans = args.scans
+    if scans is None and args.scenario not in ROUTES:
+        scans = 300
+    total = scans
+    if scans is None:  # the whole route: its length is known once it is planned (cheap)
+        total = ScanSimulator.for_drive(config, args.scenario, args.seed, None,
+                                        args.distance_m, args.vary)[0].n_scans_in_drive
+    with tqdm(total=total, unit='scan', desc=f'simulate {args.scenario}') as bar:
+        result = simulate_to_bag(args.out, args.scenario, scans, args.seed, config,
                                  fmt=args.fmt, topdown_png=not args.no_png,
-                                 progress=lambda done: bar.update(done - bar.n))
+                                 progress=lambda done: bar.update(done - bar.n),
+                                 distance_m=args.distance_m, vary=args.vary)
     print(f'bag:          {result.bag_path}')
     print(f'ground truth: {result.gt_csv_path}')
     print(f'sensor poses: {result.gt_tum_path}')

@@ -1,0 +1,262 @@
+"""The benchmark of record: every method on the same long, varied drives, in one run.
+
+A run is a list of `Entry` (a table label, a bench method of `runner.run_method`, and config
+overrides for our own pipeline) over a list of drives. Every entry sees the same bags through
+the same reader and clock; metrics are `replay.summarize`'s with KITTI's segment lengths
+(100-800 m) plus 10 m. Results: one JSON, a Markdown page with the per-drive and summary
+tables, and an ATE-over-distance figure.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from gft_odom.bench.runner import BenchSequence, MethodRun, run_method
+from gft_odom.config import GftOdomConfig, with_values
+from gft_odom.core.metrics import ate
+from gft_odom.io.atomic import write_text_atomic
+from gft_odom.io.ground_truth import read_ground_truth
+from gft_odom.replay import estimate_for_ground_truth
+
+# KITTI's segment lengths (as kiss-icp reports drift) and a short one for RPE per 10 m.
+RPE_SHORT_M = 10.0
+KITTI_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+RECORD_LENGTHS_M = (RPE_SHORT_M,) + KITTI_LENGTHS_M
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One row of the record: `method` of the bench, our config with `overrides`."""
+
+    label: str
+    method: str
+    overrides: tuple[tuple[str, object], ...] = ()
+
+    def config(self, base: GftOdomConfig) -> GftOdomConfig:
+        """The base config with the record's segment lengths and this entry's overrides."""
+        values = {'evaluation.lengths_m': RECORD_LENGTHS_M, **dict(self.overrides)}
+        return with_values(base, values)
+
+
+@dataclass
+class RecordRun:
+    """What one record run measured: per (entry, drive) metrics and error-over-distance."""
+
+    entries: list[Entry]
+    sequences: list[BenchSequence]
+    metrics: dict[tuple[str, str], dict] = field(default_factory=dict)
+    # (label, drive) -> (distance travelled at each matched pose [m], ATE error there [m])
+    error_curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict)
+
+
+def kitti_drift_pct(metrics: dict, lengths_m: Sequence[float] = KITTI_LENGTHS_M) -> float:
+    """Translation drift pooled over every segment of `lengths_m` (as the KITTI devkit)."""
+    total = count = 0.0
+    for length in lengths_m:
+        n = metrics.get(f'rpe_count_{length:g}m') or 0
+        value = metrics.get(f'rpe_drift_pct_{length:g}m')
+        if n and value is not None:
+            total += float(value) * n
+            count += n
+    return total / count if count else math.nan
+
+
+def _error_curve(run: MethodRun) -> tuple[np.ndarray, np.ndarray]:
+    """Distance along the ground truth and ATE error at each matched pose of one run."""
+    ev = run.config.evaluation
+    estimate = estimate_for_ground_truth(run.replay, run.config)
+    result = ate(estimate, run.replay.ground_truth, mode='position', max_diff_s=ev.max_diff_s,
+                 match=ev.match, max_gap_s=ev.max_gap_s)
+    xyz = estimate.poses[result.est_idx, :3, 3]
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0),
+                                                                axis=1))])
+    return travelled, result.errors_m
+
+
+def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
+              ) -> tuple[dict, tuple[np.ndarray, np.ndarray]]:
+    """One entry on one drive: its flat metrics (plus KITTI drift) and error curve."""
+    run = run_method(entry.method, sequence, entry.config(base),
+                     ground_truth=read_ground_truth(sequence.gt_path))
+    metrics = dict(run.metrics)
+    metrics['label'] = entry.label
+    metrics['kitti_drift_pct'] = kitti_drift_pct(metrics)
+    metrics['rpe_10m_pct'] = metrics.get(f'rpe_drift_pct_{RPE_SHORT_M:g}m')
+    return metrics, _error_curve(run)
+
+
+def _run_entry_job(args):
+    return run_entry(*args)
+
+
+def run_record(entries: Sequence[Entry], sequences: Sequence[BenchSequence],
+               base: GftOdomConfig | None = None, jobs: int = 1,
+               progress: Callable[[str, str], None] | None = None) -> RecordRun:
+    """Every entry on every drive; `jobs` > 1 runs (entry, drive) pairs in processes."""
+    base = base or GftOdomConfig()
+    for entry in entries:
+        entry.config(base)  # a bad override fails before any work
+    record = RecordRun(list(entries), list(sequences))
+    work = [(entry, seq, base) for seq in sequences for entry in entries]
+    if jobs > 1:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            results = pool.map(_run_entry_job, work)
+            for (entry, seq, _), (metrics, curve) in zip(work, results):
+                record.metrics[(entry.label, seq.name)] = metrics
+                record.error_curves[(entry.label, seq.name)] = curve
+                if progress is not None:
+                    progress(entry.label, seq.name)
+    else:
+        for entry, seq, _ in work:
+            metrics, curve = run_entry(entry, seq, base)
+            record.metrics[(entry.label, seq.name)] = metrics
+            record.error_curves[(entry.label, seq.name)] = curve
+            if progress is not None:
+                progress(entry.label, seq.name)
+    return record
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    """A plain Markdown table, numbers right-aligned."""
+    lines = ['| ' + ' | '.join(header) + ' |',
+             '|---|' + '---:|' * (len(header) - 1)]
+    lines += ['| ' + ' | '.join(row) + ' |' for row in rows]
+    return '\n'.join(lines)
+
+
+def _mean(values) -> float | None:
+    clean = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return float(np.mean(clean)) if clean else None
+
+
+def summarize_record(record: RecordRun) -> dict[str, dict]:
+    """Per entry: means over drives (each drive once), latency medians pooled by drive."""
+    out = {}
+    for entry in record.entries:
+        rows = [record.metrics[(entry.label, s.name)] for s in record.sequences
+                if (entry.label, s.name) in record.metrics]
+        out[entry.label] = {
+            'ate_rmse_m': _mean(r.get('ate_rmse_m') for r in rows),
+            'kitti_drift_pct': _mean(r.get('kitti_drift_pct') for r in rows),
+            'rpe_10m_pct': _mean(r.get('rpe_10m_pct') for r in rows),
+            'latency_median_ms': _mean(r.get('latency_median_ms') for r in rows),
+            'latency_p95_ms': _mean(r.get('latency_p95_ms') for r in rows),
+            'real_time_factor': _mean(r.get('real_time_factor') for r in rows),
+            'fallbacks': int(sum(r.get('fallbacks') or 0 for r in rows)),
+            'distance_m': float(sum(r.get('path_length_m') or 0.0 for r in rows)),
+            'drives': len(rows),
+        }
+    return out
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return 'n/a'
+    return f'{value:.{digits}f}' if isinstance(value, float) else str(value)
+
+
+def summary_markdown(summary: dict[str, dict]) -> str:
+    """The summary table: one row per entry."""
+    header = ['method', 'mean ATE RMSE [m]', 'drift 100-800 m [%]', 'RPE 10 m [%]',
+              'latency median / p95 [ms]', 'real-time factor', 'fallbacks']
+    rows = [[label, _fmt(s['ate_rmse_m']), _fmt(s['kitti_drift_pct'], 2),
+             _fmt(s['rpe_10m_pct'], 2),
+             f"{_fmt(s['latency_median_ms'], 1)} / {_fmt(s['latency_p95_ms'], 1)}",
+             _fmt(s['real_time_factor'], 1), str(s['fallbacks'])]
+            for label, s in summary.items()]
+    return _table(header, rows)
+
+
+def per_drive_markdown(record: RecordRun, key: str = 'ate_rmse_m', digits: int = 3) -> str:
+    """One row per drive, one column per entry, of metric `key`."""
+    header = ['drive', 'length [m]'] + [e.label for e in record.entries]
+    rows = []
+    for seq in record.sequences:
+        first = next((record.metrics[(e.label, seq.name)] for e in record.entries
+                      if (e.label, seq.name) in record.metrics), {})
+        rows.append([seq.name, _fmt(first.get('path_length_m'), 0)] +
+                    [_fmt(record.metrics.get((e.label, seq.name), {}).get(key), digits)
+                     for e in record.entries])
+    return _table(header, rows)
+
+
+def record_to_dict(record: RecordRun, settings: dict) -> dict:
+    """Everything as JSON-ready data (NaN -> None)."""
+    def clean(value):
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [clean(v) for v in value]
+        return value
+    return clean({
+        'settings': settings,
+        'entries': [{'label': e.label, 'method': e.method, 'overrides': dict(e.overrides)}
+                    for e in record.entries],
+        'drives': [{'name': s.name, 'route': s.scenario, 'seed': s.seed, 'n_scans': s.n_scans}
+                   for s in record.sequences],
+        'summary': summarize_record(record),
+        'runs': [record.metrics[k] for k in sorted(record.metrics)],
+    })
+
+
+def plot_error_over_distance(record: RecordRun, path: Path) -> Path:
+    """ATE error against distance travelled, one panel per drive, one line per entry."""
+    from gft_odom.figures import pyplot
+    plt = pyplot()
+    n = len(record.sequences)
+    cols = min(4, n)
+    rows = int(math.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    colours = plt.rcParams['axes.prop_cycle'].by_key()['color']
+    for i, seq in enumerate(record.sequences):
+        ax = axes[i // cols][i % cols]
+        for j, entry in enumerate(record.entries):
+            curve = record.error_curves.get((entry.label, seq.name))
+            if curve is None:
+                continue
+            ax.plot(curve[0], curve[1], lw=1.0, color=colours[j % len(colours)],
+                    label=entry.label)
+        ax.set_title(seq.name, fontsize=9)
+        ax.set_xlabel('distance travelled [m]')
+        ax.set_ylabel('position error [m]')
+        ax.grid(alpha=0.3)
+    for k in range(n, rows * cols):
+        axes[k // cols][k % cols].axis('off')
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc='lower center', ncol=min(len(labels), 5), fontsize=8)
+    fig.tight_layout(rect=(0, 0.06 + 0.02 * (len(labels) > 5), 1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_record(record: RecordRun, out_dir: Path, settings: dict, stem: str = 'record'
+                 ) -> dict[str, Path]:
+    """`<stem>.json`, `<stem>.md` and `<stem>_ate_over_distance.png` under `out_dir`."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    document = record_to_dict(record, settings)
+    json_path = out_dir / f'{stem}.json'
+    write_text_atomic(json_path, json.dumps(document, indent=2, sort_keys=True) + '\n')
+    png = plot_error_over_distance(record, out_dir / f'{stem}_ate_over_distance.png')
+    md = '\n\n'.join([
+        '## Summary (means over drives)', summary_markdown(document['summary']),
+        '## ATE RMSE per drive [m]', per_drive_markdown(record),
+        '## Drift over 100-800 m segments per drive [%]',
+        per_drive_markdown(record, 'kitti_drift_pct', 2),
+        '## Latency median per drive [ms]', per_drive_markdown(record, 'latency_median_ms', 1),
+        f'![ATE over distance]({png.name})']) + '\n'
+    md_path = out_dir / f'{stem}.md'
+    write_text_atomic(md_path, md)
+    return {'json': json_path, 'markdown': md_path, 'figure': png}

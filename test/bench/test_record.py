@@ -1,0 +1,89 @@
+"""The benchmark of record: drives cache, pooled KITTI drift, one run, its files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from gft_odom.bench import drives as drives_module
+from gft_odom.bench.drives import Drive, ensure_drives
+from gft_odom.bench.record import (
+    KITTI_LENGTHS_M,
+    Entry,
+    kitti_drift_pct,
+    run_record,
+    write_record,
+)
+from gft_odom.bench.runner import BenchSequence
+from gft_odom.config import GftOdomConfig
+from gft_odom.errors import ConfigError
+from gft_odom.sim.simulator import SimConfig
+from gft_odom.sim.writer import simulate_to_bag
+
+
+def test_kitti_drift_pools_segments_not_lengths():
+    metrics = {'rpe_drift_pct_100m': 1.0, 'rpe_count_100m': 300,
+               'rpe_drift_pct_200m': 4.0, 'rpe_count_200m': 100,
+               'rpe_drift_pct_300m': None, 'rpe_count_300m': 0,
+               'rpe_drift_pct_10m': 50.0, 'rpe_count_10m': 5000}
+    # (1 * 300 + 4 * 100) / 400, and the 10 m segments are not KITTI's.
+    assert kitti_drift_pct(metrics) == pytest.approx(1.75)
+    assert math.isnan(kitti_drift_pct({}))
+    assert KITTI_LENGTHS_M[0] == 100.0 and KITTI_LENGTHS_M[-1] == 800.0
+
+
+def test_entry_overrides_are_checked():
+    with pytest.raises(ConfigError, match='unknown parameter'):
+        Entry('x', 'default+gft', (('registration.desk', True),)).config(GftOdomConfig())
+    config = Entry('x', 'default+gft', (('registration.deskew', True),)).config(GftOdomConfig())
+    assert config.registration.deskew and config.evaluation.lengths_m[0] == 10.0
+
+
+def test_ensure_drives_reuses_complete_drives_and_redoes_interrupted_ones(tmp_path,
+                                                                          monkeypatch):
+    calls = []
+
+    def fake_simulate(out_dir, route, n_scans, seed, config, **kwargs):
+        calls.append((route, seed))
+        out_dir.mkdir(parents=True)
+        (out_dir / 'sim_metadata.json').write_text(json.dumps({'n_scans': 7}))
+
+    monkeypatch.setattr(drives_module, 'simulate_to_bag', fake_simulate)
+    done, interrupted = Drive('spiral', 1, 100.0), Drive('lawnmower', 2, 100.0)
+    (tmp_path / done.name).mkdir()
+    (tmp_path / done.name / 'sim_metadata.json').write_text(json.dumps({'n_scans': 5}))
+    (tmp_path / f'{interrupted.name}.partial').mkdir()  # a killed run left this
+    sequences = ensure_drives([done, interrupted], tmp_path)
+    assert calls == [('lawnmower', 2)]
+    assert [s.n_scans for s in sequences] == [5, 7]
+    assert not (tmp_path / f'{interrupted.name}.partial').exists()
+    assert sequences[1].bag_path.parent == tmp_path / interrupted.name
+
+
+@pytest.mark.slow
+def test_record_runs_every_entry_on_every_drive_and_writes_its_files(tmp_path):
+    result = simulate_to_bag(tmp_path / 'drive', 'uturn', 60, seed=4,
+                             config=SimConfig(azimuth_step_deg=0.5), topdown_png=False)
+    sequence = BenchSequence('uturn', 4, 60, result.bag_path, result.gt_csv_path)
+    entries = [Entry('ours', 'default+gft'), Entry('kiss', 'kiss-icp'),
+               Entry('ours, 3 keyframes', 'default+gft', (('registration.map_keyframes', 3),))]
+    record = run_record(entries, [sequence])
+    assert set(record.metrics) == {(e.label, 'uturn-4') for e in entries}
+    for entry in entries:
+        m = record.metrics[(entry.label, 'uturn-4')]
+        assert m['label'] == entry.label and m['n_scans'] == 60
+        assert 0.0 < m['ate_rmse_m'] < 0.5  # a 6 m drive: a broken run is metres off
+        assert m['rpe_10m_pct'] is None or m['rpe_10m_pct'] >= 0.0
+        distance, error = record.error_curves[(entry.label, 'uturn-4')]
+        assert distance.shape == error.shape and distance[-1] > 3.0
+        assert np.sqrt(np.mean(error ** 2)) == pytest.approx(m['ate_rmse_m'], rel=1e-6)
+    paths = write_record(record, tmp_path / 'out', {'drives': 'test'})
+    document = json.loads(paths['json'].read_text())
+    assert set(document['summary']) == {e.label for e in entries}
+    assert document['summary']['ours']['drives'] == 1
+    text = paths['markdown'].read_text()
+    assert 'uturn-4' in text and 'ours, 3 keyframes' in text
+    assert paths['figure'].stat().st_size > 10_000
