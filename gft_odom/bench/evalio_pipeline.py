@@ -15,9 +15,9 @@ of `GftOdomConfig()`; evalio parameters are scalars, so the band mask is the str
 Reading a LidarMeasurement back costs one list per field: evalio exposes the positions and
 point stamps as Python lists (`to_vec_positions`, `to_vec_stamps`), which numpy turns into
 arrays in C; no Python loop over points runs here, but nanobind builds one small object per
-point (about 10 ms for a 29 k point VLP-16 sweep). Rows are not exposed as a list, so the ring
-comes from the elevation angle (VLP-16 beams) when evalio's LiDAR parameters say 16 rows, else
-the scan has no ring (the spectral filter then warns once and builds its kNN fallback).
+point (measured 15 ms for a 16 x 900 image, 14 400 points). Rows are not exposed as a list, so
+the ring comes from the elevation angle (VLP-16 beams) when evalio's LiDAR parameters say 16
+rows, else the scan has no ring (the spectral filter then warns once and uses the slice graph).
 """
 
 from __future__ import annotations
