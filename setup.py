@@ -29,8 +29,11 @@ setup(
         'matplotlib',
     ],
     extras_require={
-        # kiss-icp: the peer the benchmarks measure against; ray: band search on a cluster.
-        'test': ['pytest', 'hypothesis', 'evo', 'ruff', 'kiss-icp>=1.3.0', 'ray>=2.9'],
+        # kiss-icp: the peer the benchmarks measure against; evalio: six more LiDAR-only peers
+        # (gft_odom.bench.peers); ray: band search on a cluster.
+        'test': ['pytest', 'hypothesis', 'evo', 'ruff', 'kiss-icp>=1.3.0', 'evalio==0.6.1',
+                 'ray>=2.9'],
+        'peers': ['evalio==0.6.1'],
         'ray': ['ray>=2.9'],
     },
     zip_safe=True,

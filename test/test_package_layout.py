@@ -49,7 +49,8 @@ ROSDEP_KEYS = {
     'hypothesis': 'python3-hypothesis', 'pytest': 'python3-pytest',
 }
 # No usable rosdep key: installed by pip (requirements.txt), or optional extras of the tools.
-PIP_ONLY = {'open3d', 'rosbags', 'apsw', 'ray', 'kiss_icp', 'evo'}  # apsw: rosbags' sqlite
+# apsw: rosbags' sqlite; kiss_icp, evo, evalio: the benchmarks' peers and metrics.
+PIP_ONLY = {'open3d', 'rosbags', 'apsw', 'ray', 'kiss_icp', 'evo', 'evalio'}
 ROS_PACKAGE_PREFIXES = ('rcl', 'rclpy', 'launch', 'ament_')
 
 

@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from gft_odom.bench.runner import METHODS, BenchRun
+from gft_odom.bench.runner import ALL_METHODS, BenchRun
 from gft_odom.core.metrics import ate
 from gft_odom.errors import GftOdomError
 from gft_odom.io.atomic import write_text_atomic
@@ -42,7 +42,7 @@ def summarize_methods(bench: BenchRun) -> dict[str, dict]:
         kept = sum(float(r.replay.points_kept.sum()) for r in runs)
         seen = sum(float(r.replay.points_in.sum()) for r in runs)
         row.update(
-            label=METHODS[method][0], n_sequences=len(runs), n_scans=int(latency_ms.size),
+            label=ALL_METHODS[method][0], n_sequences=len(runs), n_scans=int(latency_ms.size),
             latency_median_ms=float(np.median(latency_ms)) if latency_ms.size else None,
             latency_p95_ms=float(np.percentile(latency_ms, 95)) if latency_ms.size else None,
             points_kept_pct=100.0 * kept / seen if seen else None,

@@ -1,4 +1,5 @@
-"""Run the five methods on the same simulated sequences, one clock, one metrics code.
+"""Run the five methods (and evalio's peers) on the same simulated sequences, one clock, one
+metrics code.
 
 Every method sees the scans of the same bag, decoded by the same reader; the latency of a scan
 is `time.perf_counter()` from before the bag read + decode to after the method's per-scan call
@@ -21,6 +22,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from gft_odom.bench.kiss import KissIcpConfig, KissIcpOdometry
+from gft_odom.bench.peers import PEERS, EvalioOdometry, LidarLayout, peer_metadata
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.core.geometry import sensor_to_base_poses
 from gft_odom.core.trajectory import Trajectory
@@ -42,6 +44,14 @@ METHODS: dict[str, tuple[str, str | None, bool]] = {
     'default+gft': ('default registration + GFT filter', 'default', True),
     'kiss-icp': ('kiss-icp', None, False),
 }
+# evalio's LiDAR-only pipelines, run like kiss-icp (no spectral filter). Not in METHODS, so the
+# default `gft-odom bench` stays the five methods; ask for them by name.
+PEER_METHODS: dict[str, tuple[str, str | None, bool]] = {
+    name: (label, None, False) for name, (_, label) in PEERS.items()}
+ALL_METHODS: dict[str, tuple[str, str | None, bool]] = {**METHODS, **PEER_METHODS}
+# Peers on our simulator: its azimuth step varies (coarse for tests), so the column count of
+# the organised cloud is read off the first scan; rows, ranges and rate are the VLP-16's.
+PEER_LIDAR = LidarLayout(n_columns=None)
 
 
 @dataclass(frozen=True)
@@ -103,9 +113,9 @@ def simulate_sequences(out_dir: str | Path, scenarios: Sequence[str], seeds: Seq
 
 def method_config(base: GftOdomConfig, method: str) -> GftOdomConfig:
     """The base config with the method's registration mode and filter switch."""
-    if method not in METHODS:
-        raise ConfigError(f'unknown bench method {method!r}; choose from {list(METHODS)}')
-    _, mode, use_filter = METHODS[method]
+    if method not in ALL_METHODS:
+        raise ConfigError(f'unknown bench method {method!r}; choose from {list(ALL_METHODS)}')
+    _, mode, use_filter = ALL_METHODS[method]
     if mode is None:
         return with_values(base, {'pipeline.use_spectral_filter': False})
     return with_values(base, {'registration.mode': mode,
@@ -115,6 +125,13 @@ def method_config(base: GftOdomConfig, method: str) -> GftOdomConfig:
 def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfig):
     """A callable scan -> (stamp_ns, T_world_sensor, n_points_in, n_points_kept, status),
     or None for a scan the pipeline's acceptance rejected (as the node would)."""
+    if method in PEER_METHODS:
+        peer = EvalioOdometry(PEERS[method][0], lidar=PEER_LIDAR)
+
+        def step(scan):
+            frame = peer.register_frame(scan)
+            return frame.stamp_ns, frame.T_world_sensor, len(scan), frame.n_points_kept, 'ok'
+        return step
     if METHODS[method][1] is None:
         kiss = KissIcpOdometry(kiss_config)
 
@@ -168,7 +185,10 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
     metrics['sequence'] = sequence.name
     metrics['scenario'] = sequence.scenario
     metrics['seed'] = sequence.seed
-    if METHODS[method][1] is None:
+    if method in PEER_METHODS:
+        metrics.update(peer_metadata(PEERS[method][0]), use_spectral_filter=False,
+                       band_mask=None, n_bands=None)
+    elif METHODS[method][1] is None:
         metrics.update(registration_mode='kiss-icp', use_spectral_filter=False,
                        band_mask=None, n_bands=None)
     replay.metrics = metrics

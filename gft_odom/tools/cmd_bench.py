@@ -23,7 +23,14 @@ from gft_odom.bench.report import (
     summary_table,
     write_json,
 )
-from gft_odom.bench.runner import METHODS, profile_method, run_bench, simulate_sequences
+from gft_odom.bench.runner import (
+    ALL_METHODS,
+    METHODS,
+    PEER_METHODS,
+    profile_method,
+    run_bench,
+    simulate_sequences,
+)
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.errors import ConfigError
 from gft_odom.io.atomic import write_text_atomic
@@ -69,7 +76,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--azimuth-step-deg', type=float, default=0.2,
                    help='simulated VLP-16 azimuth step (0.2 = the real sensor; coarser only to '
                         'make tests cheap)')
-    p.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
+    p.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(ALL_METHODS),
+                   help='default: the five methods; the evalio peers '
+                        f'({", ".join(PEER_METHODS)}) run when named')
     add_config(p, help="params file with the band mask (default: the package's "
                                  'config/filter_odom.yaml)')
     p.add_argument('--mask-provenance', default='',
@@ -171,6 +180,7 @@ def _settings(args: argparse.Namespace, config_path, base_config, kiss_config: K
                               'max_diff_s': base_config.evaluation.max_diff_s,
                               'max_gap_s': base_config.evaluation.max_gap_s},
         'kiss_icp_version': version,
+        'evalio_version': _evalio_version(args.methods),
         'kiss_icp_config': _as_dict(kiss_config),
         'kiss_icp_config_text': _kiss_text(kiss_config),
         'registration_config': _as_dict(base_config.registration),
@@ -195,6 +205,14 @@ def _write_and_print(args: argparse.Namespace, bench, document: dict) -> None:
     for t in document['targets']:
         print(f'[{"met" if t["met"] else "MISSED"}] {t["target"]}: {t["measured"]}')
     print(f'wrote {json_path}, {md_path}' + ''.join(f', {p}' for p in figures.values()))
+
+
+def _evalio_version(methods) -> str:
+    """evalio's version when a peer runs, else 'not run'."""
+    if not any(m in PEER_METHODS for m in methods):
+        return 'not run'
+    from gft_odom.bench.peers import evalio_version
+    return evalio_version()
 
 
 def _as_dict(cfg) -> dict:

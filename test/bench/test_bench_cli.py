@@ -89,8 +89,21 @@ def test_method_config_switches_mode_and_filter():
     assert method_config(base, 'paper').pipeline.use_spectral_filter is False
     assert method_config(base, 'default+gft').pipeline.use_spectral_filter is True
     assert method_config(base, 'kiss-icp').pipeline.use_spectral_filter is False
+    # 'loam' is an evalio peer now (PEER_METHODS); any other name is still refused.
+    assert method_config(base, 'loam').pipeline.use_spectral_filter is False
     with pytest.raises(ConfigError, match='unknown bench method'):
-        method_config(base, 'loam')
+        method_config(base, 'loam3d')
+
+
+def test_default_bench_methods_stay_the_five():
+    from gft_odom.bench.runner import ALL_METHODS, PEER_METHODS
+    from gft_odom.tools.cli import build_parser
+    assert list(METHODS) == ['paper', 'paper+gft', 'default', 'default+gft', 'kiss-icp']
+    assert not set(PEER_METHODS) & set(METHODS)
+    assert list(ALL_METHODS) == list(METHODS) + list(PEER_METHODS)
+    args = build_parser('bench').parse_args(['bench'])
+    assert args.methods == list(METHODS)
+    assert build_parser('bench').parse_args(['bench', '--methods', 'loam']).methods == ['loam']
 
 
 @pytest.mark.parametrize('field, value', [('voxel_size_m', 0.0), ('min_range_m', 200.0),
