@@ -8,7 +8,7 @@ STAMP := $(VENV)/.gft_odom_installed
 DEMO_OUT ?= demo_out
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup demo test test-fast lint bench clean system-deps
+.PHONY: setup demo test test-fast lint bench bench-record clean system-deps
 
 setup: system-deps $(STAMP)
 
@@ -37,8 +37,14 @@ test-fast: setup
 lint: setup
 	$(VENV)/bin/ruff check gft_odom test benchmarks
 
+# Every benchmark, the record included (several hours on 2 cores; see docs/benchmarks.md).
 bench: setup
 	$(PY) benchmarks/run_all.py
+
+# Only the benchmark of record: 7 held-out varied drives (~2.3 km), gft_odom and six peers.
+# Simulates the drives once into ~/.cache/gft_odom/drives (~35 min), then ~3 h of methods.
+bench-record: setup
+	$(PY) benchmarks/bench_record.py
 
 clean:
 	rm -rf build install log $(DEMO_OUT) .pytest_cache

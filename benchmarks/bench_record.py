@@ -29,9 +29,21 @@ from gft_odom.bench.report import machine_info
 RESULTS = Path(__file__).resolve().parent / 'results'
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
+# The registration defaults before issue 15 (a 15-keyframe map, oldest dropped first, a
+# keyframe every 0.2 rad of turn), spelled out so the row means the same after the change.
+PREVIOUS_DEFAULTS = (('registration.map_keyframes', 15), ('registration.map_max_points', 40000),
+                     ('registration.map_keyframe_eviction', 'oldest'),
+                     ('registration.keyframe_rotation_rad', 0.2))
+# Every LiDAR-only pipeline evalio 0.6.1 offers (its KISS-ICP duplicates our kiss-icp row).
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
+    Entry('gft_odom, previous defaults', 'default+gft', PREVIOUS_DEFAULTS),
     Entry('kiss-icp', 'kiss-icp'),
+    Entry('GenZ-ICP', 'genz-icp'),
+    Entry('MAD-ICP', 'mad-icp'),
+    Entry('CT-ICP', 'ct-icp'),
+    Entry('FORM', 'form'),
+    Entry('LOAM', 'loam'),
 )
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
@@ -45,6 +57,20 @@ STUDY_ENTRIES = (
     Entry('deskew + map 60 keyframes', 'default+gft', (_DESKEW,) + _LONG_MAP),
     Entry('deskew + ldos B4 [1]', 'default+gft',
           (_DESKEW, ('spectral.n_bands', 4), ('spectral.band_mask', [1]))),
+    # Round 2, after round 1 showed the map's length mattered most.
+    Entry('map 60 kf, rotation kf 1 rad', 'default+gft',
+          _LONG_MAP + (('registration.keyframe_rotation_rad', 1.0),)),
+    Entry('deskew + map 60 kf, rotation kf 1 rad', 'default+gft',
+          (_DESKEW,) + _LONG_MAP + (('registration.keyframe_rotation_rad', 1.0),)),
+    Entry('map 120 kf', 'default+gft',
+          (('registration.map_keyframes', 120), ('registration.map_max_points', 120000))),
+    Entry('map 60 kf, map voxel 0.5 m', 'default+gft',
+          _LONG_MAP + (('registration.map_voxel_size_m', 0.5),)),
+    Entry('map 60 kf, farthest eviction', 'default+gft',
+          _LONG_MAP + (('registration.map_keyframe_eviction', 'farthest'),)),
+    Entry('map 60 kf, farthest eviction, rotation kf 1 rad', 'default+gft',
+          _LONG_MAP + (('registration.map_keyframe_eviction', 'farthest'),
+                       ('registration.keyframe_rotation_rad', 1.0))),
 )
 
 
@@ -56,6 +82,10 @@ def main(argv=None) -> int:
                    help=f'simulated drives (default {default_cache_dir()})')
     p.add_argument('--jobs', type=int, default=2, help='processes (simulation and methods)')
     p.add_argument('--only', nargs='*', default=None, help='entry labels to run')
+    p.add_argument('--fresh', action='store_true',
+                   help='measure every pair again (default: reuse results kept in the cache)')
+    p.add_argument('--cached-only', action='store_true',
+                   help='report the pairs already measured in the cache, measure nothing')
     p.add_argument('--study', action='store_true',
                    help='the drift-study candidates instead of the record entries')
     p.add_argument('--out', type=Path, default=RESULTS)
@@ -70,7 +100,10 @@ def main(argv=None) -> int:
                               progress=lambda name: print(f'simulated {name}', flush=True))
     t_sim = time.perf_counter() - t0
     record = run_record(entries, sequences, jobs=args.jobs,
-                        progress=lambda label, drive: print(f'{label} on {drive}', flush=True))
+                        progress=lambda label, drive: print(f'{label} on {drive}', flush=True),
+                        cache_dir=None if args.fresh else
+                        (args.cache or default_cache_dir()) / 'record_runs',
+                        cached_only=args.cached_only)
     settings = {'drives': args.drives, 'jobs': args.jobs, 'simulate_s': t_sim,
                 'methods_s': time.perf_counter() - t0 - t_sim, 'machine': machine_info()}
     stem = f'{"study" if args.study else "record"}_{args.drives}'

@@ -40,8 +40,7 @@ TRAINING_DRIVES = (Drive('lawnmower', 111, 200.0), Drive('spiral', 112, 200.0),
                    Drive('every_other_row', 113, 200.0), Drive('out_and_back', 114, 200.0))
 HELD_OUT_DRIVES = (Drive('lawnmower', 201, 280.0), Drive('every_other_row', 202, 280.0),
                    Drive('spiral', 203, 280.0), Drive('out_and_back', 204, 280.0),
-                   Drive('lawnmower', 205, 280.0), Drive('spiral', 206, 280.0),
-                   Drive('every_other_row', 207, 280.0))
+                   Drive('lawnmower', 205, 280.0), Drive('spiral', 206, 280.0))
 
 
 def default_cache_dir() -> Path:

@@ -9,6 +9,7 @@ tables, and an ATE-over-distance figure.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from concurrent.futures import ProcessPoolExecutor
@@ -93,34 +94,65 @@ def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
     return metrics, _error_curve(run)
 
 
+def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence) -> Path:
+    """Where one (entry, drive) result is kept: named by label, overrides and drive."""
+    key = json.dumps([entry.label, entry.method, list(entry.overrides)], sort_keys=True,
+                     default=str)
+    digest = hashlib.sha1(key.encode()).hexdigest()[:12]
+    return Path(cache_dir) / f'{sequence.name}__{digest}.npz'
+
+
 def _run_entry_job(args):
-    return run_entry(*args)
+    entry, sequence, base, cache_dir, cached_only = args
+    if cache_dir is not None:
+        path = _pair_file(cache_dir, entry, sequence)
+        if path.is_file():  # measured before: reuse (a resumed or extended record)
+            with np.load(path) as data:
+                return json.loads(str(data['metrics'])), (data['distance'], data['error'])
+    if cached_only:
+        return None
+    metrics, curve = run_entry(entry, sequence, base)
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix('.partial.npz')
+        np.savez(tmp, metrics=json.dumps(metrics, default=str), distance=curve[0],
+                 error=curve[1])
+        tmp.replace(path)
+    return metrics, curve
 
 
 def run_record(entries: Sequence[Entry], sequences: Sequence[BenchSequence],
                base: GftOdomConfig | None = None, jobs: int = 1,
-               progress: Callable[[str, str], None] | None = None) -> RecordRun:
-    """Every entry on every drive; `jobs` > 1 runs (entry, drive) pairs in processes."""
+               progress: Callable[[str, str], None] | None = None,
+               cache_dir: Path | None = None, cached_only: bool = False) -> RecordRun:
+    """Every entry on every drive; `jobs` > 1 runs (entry, drive) pairs in processes.
+
+    With `cache_dir`, each pair's result is kept there and reused by later runs with the same
+    label, method, overrides and drive, so a long record can be resumed or extended;
+    `cached_only` reports what is there and measures nothing (missing pairs stay missing).
+    """
     base = base or GftOdomConfig()
     for entry in entries:
         entry.config(base)  # a bad override fails before any work
     record = RecordRun(list(entries), list(sequences))
-    work = [(entry, seq, base) for seq in sequences for entry in entries]
-    if jobs > 1:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            results = pool.map(_run_entry_job, work)
-            for (entry, seq, _), (metrics, curve) in zip(work, results):
-                record.metrics[(entry.label, seq.name)] = metrics
-                record.error_curves[(entry.label, seq.name)] = curve
-                if progress is not None:
-                    progress(entry.label, seq.name)
-    else:
-        for entry, seq, _ in work:
-            metrics, curve = run_entry(entry, seq, base)
+    if cached_only and cache_dir is None:
+        raise ValueError('cached_only needs a cache_dir')
+    work = [(entry, seq, base, cache_dir, cached_only) for seq in sequences
+            for entry in entries]
+    pool = ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
+    try:
+        results = pool.map(_run_entry_job, work) if pool else map(_run_entry_job, work)
+        for (entry, seq, *_), result in zip(work, results):
+            if result is None:
+                continue
+            metrics, curve = result
             record.metrics[(entry.label, seq.name)] = metrics
             record.error_curves[(entry.label, seq.name)] = curve
             if progress is not None:
                 progress(entry.label, seq.name)
+    finally:
+        if pool is not None:
+            pool.shutdown()
     return record
 
 
@@ -165,9 +197,9 @@ def _fmt(value, digits: int = 3) -> str:
 
 def summary_markdown(summary: dict[str, dict]) -> str:
     """The summary table: one row per entry."""
-    header = ['method', 'mean ATE RMSE [m]', 'drift 100-800 m [%]', 'RPE 10 m [%]',
+    header = ['method', 'drives', 'mean ATE RMSE [m]', 'drift 100-800 m [%]', 'RPE 10 m [%]',
               'latency median / p95 [ms]', 'real-time factor', 'fallbacks']
-    rows = [[label, _fmt(s['ate_rmse_m']), _fmt(s['kitti_drift_pct'], 2),
+    rows = [[label, str(s['drives']), _fmt(s['ate_rmse_m']), _fmt(s['kitti_drift_pct'], 2),
              _fmt(s['rpe_10m_pct'], 2),
              f"{_fmt(s['latency_median_ms'], 1)} / {_fmt(s['latency_p95_ms'], 1)}",
              _fmt(s['real_time_factor'], 1), str(s['fallbacks'])]

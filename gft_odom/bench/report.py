@@ -165,7 +165,7 @@ def per_sequence_table(document: dict) -> str:
 
 
 def markdown_page(document: dict, figures: dict[str, str], notes: str = '') -> str:
-    """docs/benchmarks.md: how it was run, the table, the targets, plots, profiles."""
+    """docs/benchmarks_short_drives.md: how it was run, the table, the targets, plots, profiles."""
     s = document['settings']
     m = document['machine']
     lines = [

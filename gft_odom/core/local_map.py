@@ -8,11 +8,13 @@ covariances (the expensive part) are computed once per keyframe, not once per sc
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
+
+# Which keyframe a full map drops: the oldest (a sliding window in time) or the one farthest
+# from the newest keyframe (a window in space: revisited places keep their old keyframes).
+KEYFRAME_EVICTIONS = ('oldest', 'farthest')
 
 
 def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -43,7 +45,7 @@ class LocalMap:
     def __init__(self, voxel_size_m: float, max_range_m: float, max_points: int,
                  max_keyframes: int, keyframe_distance_m: float, keyframe_rotation_rad: float,
                  normal_neighbours: int, with_normals: bool = True,
-                 with_covariances: bool = False):
+                 with_covariances: bool = False, eviction: str = 'oldest'):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -52,7 +54,11 @@ class LocalMap:
         self.normal_neighbours = normal_neighbours
         self.with_normals = with_normals
         self.with_covariances = with_covariances
-        self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max_keyframes)
+        if eviction not in KEYFRAME_EVICTIONS:
+            raise ValueError(f'eviction must be one of {KEYFRAME_EVICTIONS}, got {eviction!r}')
+        self.eviction = eviction
+        self.max_keyframes = max_keyframes
+        self._keyframes: list[tuple[np.ndarray, np.ndarray]] = []
         self.cloud = o3d.geometry.PointCloud()
 
     def __len__(self) -> int:
@@ -81,6 +87,15 @@ class LocalMap:
     def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray) -> None:
         """Store a keyframe (world-frame points) and rebuild the served cloud."""
         keep = voxel_downsample_indices(points_world, self.voxel_size_m)
+        if len(self._keyframes) >= self.max_keyframes:
+            if self.eviction == 'farthest':
+                # Keep what is near: a lane driven again, or the next lane over, stays mapped.
+                where = np.array([T[:3, 3] for T, _ in self._keyframes])
+                d2 = np.einsum('ij,ij->i', where - T_world_sensor[:3, 3],
+                               where - T_world_sensor[:3, 3])
+                del self._keyframes[int(np.argmax(d2))]
+            else:
+                del self._keyframes[0]
         self._keyframes.append((T_world_sensor.copy(), points_world[keep]))
         self._rebuild(T_world_sensor[:3, 3])
 

@@ -87,3 +87,21 @@ def test_record_runs_every_entry_on_every_drive_and_writes_its_files(tmp_path):
     text = paths['markdown'].read_text()
     assert 'uturn-4' in text and 'ours, 3 keyframes' in text
     assert paths['figure'].stat().st_size > 10_000
+
+
+def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, monkeypatch):
+    from gft_odom.bench import record as record_module
+    calls = []
+
+    def fake_run_entry(entry, sequence, base):
+        calls.append(entry.label)
+        return {'label': entry.label, 'ate_rmse_m': 0.5}, (np.zeros(2), np.ones(2))
+
+    monkeypatch.setattr(record_module, 'run_entry', fake_run_entry)
+    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
+    a, b = Entry('a', 'default+gft'), Entry('b', 'kiss-icp')
+    run_record([a], [sequence], cache_dir=tmp_path / 'cache')
+    record = run_record([a, b], [sequence], cache_dir=tmp_path / 'cache', cached_only=True)
+    assert calls == ['a']  # measured once, then read back; b never measured
+    assert set(record.metrics) == {('a', 'spiral-1')}
+    assert record_module.summarize_record(record)['b']['drives'] == 0

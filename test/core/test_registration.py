@@ -556,3 +556,26 @@ def test_every_status_is_listed():
     from gft_odom.core.registration import STATUSES, TRUSTED_STATUSES
     assert set(TRUSTED_STATUSES) < set(STATUSES)
     assert {'fallback_degenerate', 'fallback_implausible', 'recovered'} <= set(STATUSES)
+
+
+def test_farthest_eviction_keeps_a_revisited_place_mapped():
+    from gft_odom.core.local_map import LocalMap
+
+    def keyframe_at(x):
+        T = np.eye(4)
+        T[0, 3] = x
+        return np.array([[x, 5.0, 0.0], [x, -5.0, 0.0], [x, 5.0, 2.0]]), T
+
+    maps = {e: LocalMap(0.1, 100.0, 10_000, 3, 1.0, 0.2, 5, with_normals=False, eviction=e)
+            for e in ('oldest', 'farthest')}
+    # Out along x and back again: 0, 10, 20, then 1 (next to where it started).
+    for x in (0.0, 10.0, 20.0, 1.0):
+        for local_map in maps.values():
+            local_map.add_keyframe(*keyframe_at(x))
+    xs = {e: sorted(set(np.round(m.points_xyz[:, 0]))) for e, m in maps.items()}
+    assert xs['oldest'] == [1.0, 10.0, 20.0]  # the start is gone
+    assert xs['farthest'] == [0.0, 1.0, 10.0]  # the far end is gone, the start stays
+    with pytest.raises(ValueError, match='eviction'):
+        LocalMap(0.1, 100.0, 10, 3, 1.0, 0.2, 5, eviction='random')
+    with pytest.raises(ConfigError, match='map_keyframe_eviction'):
+        RegistrationConfig(map_keyframe_eviction='random').validate()

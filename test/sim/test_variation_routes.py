@@ -146,3 +146,12 @@ def test_whole_route_and_fixed_simulator_unchanged():
     a, _ = ScanSimulator.for_drive(SimConfig(azimuth_step_deg=2.0), 'uturn', 3, n_scans=20)
     b = ScanSimulator.from_config(SimConfig(azimuth_step_deg=2.0), 'uturn', 20, 3)
     np.testing.assert_array_equal(a.scan(4).scan.points_xyz, b.scan(4).scan.points_xyz)
+
+
+def test_docs_list_the_ranges_the_simulator_draws_from():
+    import re
+    from pathlib import Path
+    page = (Path(__file__).resolve().parents[2] / 'docs' / 'benchmarks.md').read_text()
+    documented = {name: (float(lo), float(hi)) for name, lo, hi in
+                  re.findall(r'^\| `(\w+)` \| (-?[\d.]+) \| (-?[\d.]+) \|$', page, re.M)}
+    assert documented == VARIATION_RANGES
