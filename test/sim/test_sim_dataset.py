@@ -236,7 +236,7 @@ def test_invalid_config_is_refused(tmp_path):
     with pytest.raises(ConfigError, match='dropout_probability'):
         dataclasses.replace(FAST, dropout_probability=1.5).validate()
     with pytest.raises(SimulationError, match='scenario'):
-        simulate_to_bag(tmp_path, 'spiral', 1, 1, FAST)
+        simulate_to_bag(tmp_path, 'zigzag', 1, 1, FAST)
 
 
 @pytest.mark.slow
