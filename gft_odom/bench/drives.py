@@ -9,6 +9,7 @@ complete is reused.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from concurrent.futures import ProcessPoolExecutor
@@ -55,7 +56,6 @@ def _drive_dir(cache_dir: Path, drive: Drive) -> Path:
 
 def drive_sequence(cache_dir: Path, drive: Drive) -> BenchSequence:
     """The bench sequence of a cached drive (its bag and GPS ground truth)."""
-    import json
     folder = _drive_dir(cache_dir, drive)
     meta = json.loads((folder / METADATA_FILE).read_text())
     return BenchSequence(drive.route, drive.seed, int(meta['n_scans']),

@@ -206,6 +206,14 @@ def make_motion(orchard: Orchard, scenario: str, duration_s: float, speed_mps: f
     if not closed and t[-1] < duration_s:
         raise SimulationError(f'scenario {scenario!r} path lasts {t[-1]:.1f} s, '
                               f'{duration_s:.1f} s requested')
+    return _with_wobble(orchard, s, uv, heading, t, closed, seed, lateral_wobble_m,
+                        yaw_wobble_rad)
+
+
+def _with_wobble(orchard: Orchard, s: np.ndarray, uv: np.ndarray, heading: np.ndarray,
+                 t: np.ndarray, closed: bool, seed: int, lateral_wobble_m: float,
+                 yaw_wobble_rad: float) -> RobotMotion:
+    """The motion along a tabulated path, with the skid-steer wobble drawn from `seed`."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x40710]))
     return RobotMotion(
         orchard=orchard, s_m=s, uv_m=uv, heading_rad=heading, t_s=t, closed=closed,
@@ -386,11 +394,5 @@ def make_route_motion(orchard: Orchard, route: str, n_lanes: int,
         uv = np.concatenate([uv, uv[stops]])[keep_order]
         heading = np.concatenate([heading, heading[stops]])[keep_order]
         t = np.concatenate([t, t[stops]])[keep_order] + np.cumsum(dwell)
-    wobble_rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x40710]))
-    return RobotMotion(
-        orchard=orchard, s_m=s, uv_m=uv, heading_rad=heading, t_s=t, closed=False,
-        lateral_wobble_m=float(lateral_wobble_m),
-        lateral_wobble_wavelength_m=float(wobble_rng.uniform(6.0, 12.0)),
-        lateral_wobble_phase_rad=float(wobble_rng.uniform(0.0, 2.0 * np.pi)),
-        yaw_wobble_rad=float(yaw_wobble_rad), yaw_wobble_hz=float(wobble_rng.uniform(0.2, 0.5)),
-        yaw_wobble_phase_rad=float(wobble_rng.uniform(0.0, 2.0 * np.pi)))
+    return _with_wobble(orchard, s, uv, heading, t, False, seed, lateral_wobble_m,
+                        yaw_wobble_rad)

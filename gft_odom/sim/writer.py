@@ -115,8 +115,12 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
     sim, variation = ScanSimulator.for_drive(config, scenario, seed, n_scans, distance_m, vary)
     config = sim.config
     period_s = 1.0 / config.scan_rate_hz
-    n_scans = min(int(n_scans), sim.n_scans_in_drive) if n_scans is not None and \
-        scenario in ROUTES else (int(n_scans) if n_scans is not None else sim.n_scans_in_drive)
+    if n_scans is None:  # the whole route
+        n_scans = sim.n_scans_in_drive
+    elif scenario in ROUTES:  # a route ends where it ends
+        n_scans = min(int(n_scans), sim.n_scans_in_drive)
+    else:
+        n_scans = int(n_scans)
     orchard = sim.orchard
     metadata = drive_metadata(sim, scenario, seed, n_scans, variation)
     layout = VELODYNE_XYZIR_ROS1 if config.legacy_fields else VELODYNE_XYZIRT
