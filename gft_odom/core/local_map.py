@@ -15,6 +15,10 @@ from scipy.spatial.transform import Rotation
 # Which keyframe a full map drops: the oldest (a sliding window in time) or the one farthest
 # from the newest keyframe (a window in space: revisited places keep their old keyframes).
 KEYFRAME_EVICTIONS = ('oldest', 'farthest')
+# Which point a map voxel seen by several keyframes keeps: the newest keyframe's, or the
+# oldest's (the map then stays anchored to what was seen first, as a voxel map that never
+# replaces a filled voxel).
+VOXEL_KEEPS = ('newest', 'oldest')
 
 
 def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -45,7 +49,8 @@ class LocalMap:
     def __init__(self, voxel_size_m: float, max_range_m: float, max_points: int,
                  max_keyframes: int, keyframe_distance_m: float, keyframe_rotation_rad: float,
                  normal_neighbours: int, with_normals: bool = True,
-                 with_covariances: bool = False, eviction: str = 'oldest'):
+                 with_covariances: bool = False, eviction: str = 'oldest',
+                 voxel_keeps: str = 'newest'):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -57,6 +62,9 @@ class LocalMap:
         if eviction not in KEYFRAME_EVICTIONS:
             raise ValueError(f'eviction must be one of {KEYFRAME_EVICTIONS}, got {eviction!r}')
         self.eviction = eviction
+        if voxel_keeps not in VOXEL_KEEPS:
+            raise ValueError(f'voxel_keeps must be one of {VOXEL_KEEPS}, got {voxel_keeps!r}')
+        self.voxel_keeps = voxel_keeps
         self.max_keyframes = max_keyframes
         self._keyframes: list[tuple[np.ndarray, np.ndarray]] = []
         self.cloud = o3d.geometry.PointCloud()
@@ -100,8 +108,10 @@ class LocalMap:
         self._rebuild(T_world_sensor[:3, 3])
 
     def _rebuild(self, centre_xyz: np.ndarray) -> None:
-        # Newest keyframe first, so voxels keep the freshest (least drifted) point.
-        merged = np.concatenate([pts for _, pts in reversed(self._keyframes)])
+        # The first point of a voxel wins: newest keyframe first keeps the freshest point,
+        # oldest first the one seen first.
+        order = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
+        merged = np.concatenate([pts for _, pts in order])
         d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
         merged = merged[d2 <= self.max_range_m ** 2]
         merged = merged[voxel_downsample_indices(merged, self.voxel_size_m)]

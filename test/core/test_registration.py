@@ -350,6 +350,23 @@ def test_too_few_points_falls_back_to_the_prediction(drive):
     assert pose_error(after.T_world_sensor, T_world0 @ drive[6]['T_world_sensor'])[0] < 0.1
 
 
+def test_a_run_of_fallbacks_while_moving_is_reacquired_from_the_last_trusted_pose(drive):
+    """Six unusable scans at 1 m/s: the velocity is dropped after three, so the pose stands
+    still while the robot goes on. The next full scan lies 0.7 m from the last trusted pose
+    after 0.7 s (plausible), though 0.4 m from the previous, extrapolated one after 0.1 s
+    (4 m/s, not): it must be re-acquired, not rejected as implausible."""
+    reg = _moving_registration(drive, n_scans=6)
+    for scan in drive[6:12]:
+        assert reg.register(scan['points'][:20], scan['stamp_ns']).fell_back
+    assert reg.recovering
+    result = reg.register(drive[12]['points'], drive[12]['stamp_ns'], drive[12]['time'])
+    assert result.status == 'recovered'
+    T_world0 = invert_transform(drive[0]['T_world_sensor'])
+    assert pose_error(result.T_world_sensor, T_world0 @ drive[12]['T_world_sensor'])[0] < 0.1
+    after = reg.register(drive[13]['points'], drive[13]['stamp_ns'], drive[13]['time'])
+    assert after.status == 'ok'
+
+
 def test_empty_and_non_finite_points_do_not_raise(drive):
     reg = _moving_registration(drive)
     empty = reg.register(np.zeros((0, 3)), drive[4]['stamp_ns'])
@@ -365,7 +382,7 @@ def test_empty_and_non_finite_points_do_not_raise(drive):
 def test_a_jump_far_from_the_prediction_is_flagged_diverged(static_pair):
     a, b, T_ab = static_pair
     # b is 0.26 m away while the robot was standing still: more than a 0.1 m allowance.
-    reg = registration(max_translation_jump_m=0.1)
+    reg = registration(max_translation_jump_m=0.1, retry_failed_match=False)
     reg.register(a['points'], a['stamp_ns'])
     result = reg.register(b['points'], b['stamp_ns'])
     assert result.status == 'fallback_diverged'
@@ -579,3 +596,59 @@ def test_farthest_eviction_keeps_a_revisited_place_mapped():
         LocalMap(0.1, 100.0, 10, 3, 1.0, 0.2, 5, eviction='random')
     with pytest.raises(ConfigError, match='map_keyframe_eviction'):
         RegistrationConfig(map_keyframe_eviction='random').validate()
+
+
+def test_a_voxel_keeps_the_newest_or_the_oldest_keyframes_point():
+    from gft_odom.core.local_map import LocalMap
+    maps = {k: LocalMap(1.0, 100.0, 10_000, 5, 0.1, 0.2, 5, with_normals=False, voxel_keeps=k)
+            for k in ('newest', 'oldest')}
+    # Two keyframes see the same voxel, 0.2 m apart (a drifted second view).
+    for x in (0.3, 0.5):
+        for local_map in maps.values():
+            T = np.eye(4)
+            T[0, 3] = x
+            local_map.add_keyframe(np.array([[x, 0.5, 0.5]]), T)
+    assert maps['newest'].points_xyz[:, 0].tolist() == [0.5]
+    assert maps['oldest'].points_xyz[:, 0].tolist() == [0.3]
+    with pytest.raises(ValueError, match='voxel_keeps'):
+        LocalMap(1.0, 100.0, 10, 3, 1.0, 0.2, 5, voxel_keeps='random')
+    with pytest.raises(ConfigError, match='map_voxel_keeps'):
+        RegistrationConfig(map_voxel_keeps='random').validate()
+
+
+def test_map_points_from_the_scan_are_denser_than_the_registrations(static_pair):
+    a, _, _ = static_pair
+    sizes = {}
+    for source in ('registration', 'scan'):
+        reg = registration(map_points_from=source, voxel_size_m=0.6, map_voxel_size_m=0.2)
+        reg.register(a['points'], a['stamp_ns'])
+        sizes[source] = len(reg.local_map)
+    assert sizes['scan'] > 1.5 * sizes['registration']
+    with pytest.raises(ConfigError, match='map_points_from'):
+        RegistrationConfig(map_points_from='everything').validate()
+
+
+def test_a_failed_match_is_retried_from_other_guesses_when_asked(static_pair):
+    """ICP from the prediction fails (forced here: on the robot it slid 0.45 m along a row at
+    a pivot's start); the retry, from its own guesses, finds the true pose."""
+    a, b, T_ab = static_pair
+    results = {}
+    for retry in (False, True):
+        reg = registration(retry_failed_match=retry)
+        reg.register(a['points'], a['stamp_ns'])
+        reg._match = lambda source_xyz, T_pred, stamp_ns: (
+            'fallback_implausible', T_pred, 0.0, 0.0, None)
+        results[retry] = reg.register(b['points'], b['stamp_ns'])
+    assert results[False].status == 'fallback_implausible'
+    assert results[True].status == 'recovered'
+    error_m, error_rad = pose_error(results[True].T_world_sensor, T_ab)
+    assert error_m < 0.05 and error_rad < 0.01
+
+
+def test_a_retry_passes_the_checks_a_match_does(static_pair):
+    """b is 0.26 m from a standing prediction; with a 0.1 m jump bound neither the match
+    nor its retry may take it."""
+    a, b, _ = static_pair
+    reg = registration(max_translation_jump_m=0.1, retry_failed_match=True)
+    reg.register(a['points'], a['stamp_ns'])
+    assert reg.register(b['points'], b['stamp_ns']).status == 'fallback_diverged'
