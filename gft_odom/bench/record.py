@@ -9,6 +9,7 @@ tables, and an ATE-over-distance figure.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -19,7 +20,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from gft_odom.bench.runner import BenchSequence, MethodRun, run_method
+from gft_odom.bench.runner import (
+    ALL_METHODS,
+    BenchSequence,
+    MethodRun,
+    method_config,
+    run_method,
+)
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.core.metrics import ate
 from gft_odom.io.atomic import write_text_atomic
@@ -94,10 +101,15 @@ def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
     return metrics, _error_curve(run)
 
 
-def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence) -> Path:
-    """Where one (entry, drive) result is kept: named by label, overrides and drive."""
-    key = json.dumps([entry.label, entry.method, list(entry.overrides)], sort_keys=True,
-                     default=str)
+def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
+               base: GftOdomConfig) -> Path:
+    """Where one (entry, drive) result is kept: named by label, method, drive and the whole
+    config the method runs with, so a changed default is measured again, not reused. (A code
+    change that leaves the config alone needs --fresh.)"""
+    ours = ALL_METHODS[entry.method][1] is not None  # kiss-icp and the peers ignore our config
+    config = dataclasses.asdict(method_config(entry.config(base), entry.method)) if ours else None
+    key = json.dumps([entry.label, entry.method, list(entry.overrides)] + (
+        [config] if ours else []), sort_keys=True, default=str)
     digest = hashlib.sha1(key.encode()).hexdigest()[:12]
     return Path(cache_dir) / f'{sequence.name}__{digest}.npz'
 
@@ -105,7 +117,7 @@ def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence) -> Path:
 def _run_entry_job(args):
     entry, sequence, base, cache_dir, cached_only = args
     if cache_dir is not None:
-        path = _pair_file(cache_dir, entry, sequence)
+        path = _pair_file(cache_dir, entry, sequence, base)
         if path.is_file():  # measured before: reuse (a resumed or extended record)
             with np.load(path) as data:
                 return json.loads(str(data['metrics'])), (data['distance'], data['error'])

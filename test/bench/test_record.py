@@ -105,3 +105,21 @@ def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, monkey
     assert calls == ['a']  # measured once, then read back; b never measured
     assert set(record.metrics) == {('a', 'spiral-1')}
     assert record_module.summarize_record(record)['b']['drives'] == 0
+
+
+def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, monkeypatch):
+    from gft_odom.bench import record as record_module
+    from gft_odom.config import with_values
+    calls = []
+
+    def fake_run_entry(entry, sequence, base):
+        calls.append(entry.label)
+        return {'label': entry.label, 'ate_rmse_m': 0.5}, (np.zeros(2), np.ones(2))
+
+    monkeypatch.setattr(record_module, 'run_entry', fake_run_entry)
+    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
+    ours, peer = Entry('ours', 'default+gft'), Entry('kiss', 'kiss-icp')
+    run_record([ours, peer], [sequence], cache_dir=tmp_path / 'cache')
+    changed = with_values(GftOdomConfig(), {'registration.map_keyframes': 7})
+    run_record([ours, peer], [sequence], base=changed, cache_dir=tmp_path / 'cache')
+    assert sorted(calls) == ['kiss', 'ours', 'ours']
