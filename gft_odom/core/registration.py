@@ -119,8 +119,8 @@ class RegistrationConfig:
     map_points_from: str = 'registration'
     # Which point a voxel seen by several keyframes keeps. 'oldest': the map stays anchored
     # to what was seen first instead of following each new keyframe's small error (GenZ-ICP
-    # and kiss-icp never replace a filled voxel either). On the seven training drives it
-    # took the along-row drift down (mean ATE 0.097 -> 0.070 m with retry_failed_match).
+    # and kiss-icp never replace a filled voxel either). With retry_failed_match: mean ATE
+    # 0.097 -> 0.070 m on the seven training drives (docs/benchmarks.md, round 3).
     map_voxel_keeps: str = 'oldest'
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
