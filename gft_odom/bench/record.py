@@ -106,7 +106,9 @@ def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
     """Where one (entry, drive) result is kept: named by label, method, drive and the whole
     config the method runs with, so a changed default is measured again, not reused. (A code
     change that leaves the config alone needs --fresh.)"""
-    ours = ALL_METHODS[entry.method][1] is not None  # kiss-icp and the peers ignore our config
+    # kiss-icp's and the peers' odometry ignores our config (their evaluation and extrinsics
+    # do not): after changing those defaults, measure them again with --fresh.
+    ours = ALL_METHODS[entry.method][1] is not None
     config = dataclasses.asdict(method_config(entry.config(base), entry.method)) if ours else None
     key = json.dumps([entry.label, entry.method, list(entry.overrides)] + (
         [config] if ours else []), sort_keys=True, default=str)
@@ -140,7 +142,8 @@ def run_record(entries: Sequence[Entry], sequences: Sequence[BenchSequence],
     """Every entry on every drive; `jobs` > 1 runs (entry, drive) pairs in processes.
 
     With `cache_dir`, each pair's result is kept there and reused by later runs with the same
-    label, method, overrides and drive, so a long record can be resumed or extended;
+    label, method, overrides, drive and (for our methods) config, so a long record can be
+    resumed or extended;
     `cached_only` reports what is there and measures nothing (missing pairs stay missing).
     """
     base = base or GftOdomConfig()

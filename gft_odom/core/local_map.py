@@ -50,7 +50,7 @@ class LocalMap:
                  max_keyframes: int, keyframe_distance_m: float, keyframe_rotation_rad: float,
                  normal_neighbours: int, with_normals: bool = True,
                  with_covariances: bool = False, eviction: str = 'oldest',
-                 voxel_keeps: str = 'newest'):
+                 voxel_keeps: str = 'oldest'):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points

@@ -393,11 +393,23 @@ class ScanRegistration:
 
     def _since_trusted(self, stamp_ns: int, T_world_est: np.ndarray) -> tuple[np.ndarray, float]:
         """The motion from the last trusted pose to `T_world_est` and the time it took (the
-        previous scan's unless registrations fell back since)."""
-        if self.trusted_stamp_ns is None:
-            return invert_transform(self.T_world_sensor) @ T_world_est, self.config.scan_period_s
+        previous scan's unless registrations fell back since). A stamp not after the trusted
+        one (the API tolerates it, the pipeline refuses it) is measured from the previous pose
+        over the stamp step, as before the trusted pose existed."""
+        if self.trusted_stamp_ns is None or int(stamp_ns) <= self.trusted_stamp_ns:
+            dt_s = (self.config.scan_period_s if self.last_stamp_ns is None
+                    else (int(stamp_ns) - self.last_stamp_ns) * 1e-9)
+            return invert_transform(self.T_world_sensor) @ T_world_est, dt_s
         return (invert_transform(self.T_world_trusted) @ T_world_est,
                 (int(stamp_ns) - self.trusted_stamp_ns) * 1e-9)
+
+    def _scan_motion(self, stamp_ns: int, T_world_new: np.ndarray, dt_s: float) -> np.ndarray:
+        """The motion over this scan's `dt_s` that deskew assumes: the mean motion since the
+        last trusted pose, so a pose recovered after fallbacks is not read as one jump."""
+        motion, elapsed_s = self._since_trusted(stamp_ns, T_world_new)
+        if not elapsed_s > 0.0:
+            return invert_transform(self.T_world_sensor) @ T_world_new
+        return delta_of_twist(twist_of(motion, elapsed_s), dt_s)
 
     def _step_s(self, stamp_ns: int) -> float:
         if self.last_stamp_ns is None:
@@ -485,8 +497,10 @@ class ScanRegistration:
         # 4. Re-deskew a trusted scan with its own motion: the map gets the better cloud.
         redeskew = (self.deskew and offsets_s is not None and status in ('ok', 'recovered')
                     and dt_s > 0.0)
+        # This scan's motion, as deskew assumes it (before _finish moves the trusted pose).
+        T_prev_curr = (self._scan_motion(stamp_ns, T_new, dt_s)
+                       if status in ('ok', 'recovered') and dt_s > 0.0 else None)
         if redeskew:
-            T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
             source_xyz = deskew_points(points_xyz[keep], offsets_s[keep],
                                        self._deskew_motion(dt_s, T_prev_curr), dt_s)
 
@@ -503,7 +517,7 @@ class ScanRegistration:
         if self.config.output_deskewed_points:
             result.deskewed_points = points_xyz.copy() if offsets_s is None else deskew_points(
                 points_xyz, offsets_s,
-                self._deskew_motion(dt_s, result.T_prev_curr if status == 'ok' else None), dt_s)
+                self._deskew_motion(dt_s, T_prev_curr), dt_s)
         return result
 
     def _finish(self, stamp_ns: int, dt_s: float, status: str, T_new: np.ndarray, n_used: int,
@@ -514,7 +528,7 @@ class ScanRegistration:
         t0 = time.perf_counter()
         fitness, rmse, information = (match[2], match[3], match[4]) if match else (0.0, 0.0, None)
         # Axes the ICP information is expressed in: world (map) or the previous scan (paper).
-        R_world_target = self.T_world_sensor[:3, :3] if self.mode == 'paper' else np.eye(3)
+        R_world_target = self.T_world_trusted[:3, :3] if self.mode == 'paper' else np.eye(3)
         T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
         if status in TRUSTED_STATUSES:
             # The velocity spans the motion since the last trusted pose: after fallbacks the
@@ -650,8 +664,10 @@ class ScanRegistration:
         source, target = to_cloud(source_xyz), self.local_map.cloud
         guesses = [np.zeros(6)]
         before = self.capped(self.velocity if retry else self._velocity_before_loss)
-        if np.any(before[3:]):
-            guesses += [before, np.r_[0.0, 0.0, 0.0, before[3:]]]
+        if np.any(before):
+            guesses.append(before)
+        if np.any(before[:3]) and np.any(before[3:]):
+            guesses.append(np.r_[0.0, 0.0, 0.0, before[3:]])
         wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
         _, elapsed_s = self._since_trusted(stamp_ns, self.T_world_trusted)
         best, status = None, 'fallback_low_fitness'
@@ -676,7 +692,8 @@ class ScanRegistration:
         result, T_est, velocity = best
         if retry:
             motion, elapsed_s = self._since_trusted(stamp_ns, T_est)
-            velocity = self.capped(twist_of(motion, elapsed_s)) if elapsed_s > 0.0 else velocity
+            if 0.0 < elapsed_s <= cfg.max_gap_s:
+                velocity = self.capped(twist_of(motion, elapsed_s))
         rmse = float(result.inlier_rmse)
         return ('recovered', T_est, float(result.fitness), rmse,
                 self._icp_information(source_xyz, target, result, rmse), velocity)

@@ -643,6 +643,10 @@ def test_a_failed_match_is_retried_from_other_guesses_when_asked(static_pair):
     assert results[True].status == 'recovered'
     error_m, error_rad = pose_error(results[True].T_world_sensor, T_ab)
     assert error_m < 0.05 and error_rad < 0.01
+    # The velocity is the motion the retry found (0.26 m in 0.1 s, capped at 2 m/s).
+    heading = reg.velocity[3:] / np.linalg.norm(reg.velocity[3:])
+    assert np.linalg.norm(reg.velocity[3:]) == pytest.approx(2.0)
+    assert heading @ (T_ab[:3, 3] / np.linalg.norm(T_ab[:3, 3])) > 0.99
 
 
 def test_a_retry_passes_the_checks_a_match_does(static_pair):
