@@ -37,6 +37,8 @@ from gft_odom.replay import estimate_for_ground_truth
 RPE_SHORT_M = 10.0
 KITTI_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 RECORD_LENGTHS_M = (RPE_SHORT_M,) + KITTI_LENGTHS_M
+# The figure's log axis starts here: smaller errors are drawn at 1 mm.
+ERROR_FLOOR_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,8 @@ def kitti_drift_pct(metrics: dict, lengths_m: Sequence[float] = KITTI_LENGTHS_M)
 
 
 def _error_curve(run: MethodRun) -> tuple[np.ndarray, np.ndarray]:
-    """Distance along the ground truth and ATE error at each matched pose of one run."""
+    """Distance along the estimate (a lost method's jitter lengthens it) and ATE error at each
+    matched pose of one run. The cached curves of the record are kept this way."""
     ev = run.config.evaluation
     estimate = estimate_for_ground_truth(run.replay, run.config)
     result = ate(estimate, run.replay.ground_truth, mode='position', max_diff_s=ev.max_diff_s,
@@ -257,7 +260,8 @@ def record_to_dict(record: RecordRun, settings: dict) -> dict:
 
 
 def plot_error_over_distance(record: RecordRun, path: Path) -> Path:
-    """ATE error against distance travelled, one panel per drive, one line per entry."""
+    """ATE error against distance travelled, one panel per drive, one line per entry. Log
+    scale: a lost method (tens of metres) and a good one (centimetres) share each panel."""
     from gft_odom.figures import pyplot
     plt = pyplot()
     n = len(record.sequences)
@@ -271,12 +275,13 @@ def plot_error_over_distance(record: RecordRun, path: Path) -> Path:
             curve = record.error_curves.get((entry.label, seq.name))
             if curve is None:
                 continue
-            ax.plot(curve[0], curve[1], lw=1.0, color=colours[j % len(colours)],
-                    label=entry.label)
+            ax.plot(curve[0], np.maximum(curve[1], ERROR_FLOOR_M), lw=1.0,
+                    color=colours[j % len(colours)], label=entry.label)
         ax.set_title(seq.name, fontsize=9)
-        ax.set_xlabel('distance travelled [m]')
+        ax.set_xlabel('distance travelled by the estimate [m]')
         ax.set_ylabel('position error [m]')
-        ax.grid(alpha=0.3)
+        ax.set_yscale('log')
+        ax.grid(alpha=0.3, which='both')
     for k in range(n, rows * cols):
         axes[k // cols][k % cols].axis('off')
     handles, labels = axes[0][0].get_legend_handles_labels()
