@@ -495,11 +495,12 @@ class ScanRegistration:
             timings['icp'] = time.perf_counter() - t0
 
         # 4. Re-deskew a trusted scan with its own motion: the map gets the better cloud.
-        redeskew = (self.deskew and offsets_s is not None and status in ('ok', 'recovered')
-                    and dt_s > 0.0)
-        # This scan's motion, as deskew assumes it (before _finish moves the trusted pose).
+        # This scan's motion, as deskew assumes it (before _finish moves the trusted pose);
+        # only worked out when the scan is deskewed (offsets_s is set only then).
         T_prev_curr = (self._scan_motion(stamp_ns, T_new, dt_s)
-                       if status in ('ok', 'recovered') and dt_s > 0.0 else None)
+                       if offsets_s is not None and status in ('ok', 'recovered')
+                       and dt_s > 0.0 else None)
+        redeskew = T_prev_curr is not None
         if redeskew:
             source_xyz = deskew_points(points_xyz[keep], offsets_s[keep],
                                        self._deskew_motion(dt_s, T_prev_curr), dt_s)

@@ -89,7 +89,9 @@ def test_record_runs_every_entry_on_every_drive_and_writes_its_files(tmp_path):
     assert paths['figure'].stat().st_size > 10_000
 
 
-def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, monkeypatch):
+@pytest.fixture
+def measured_labels(monkeypatch) -> list[str]:
+    """The labels `run_record` measures (a fake, instant `run_entry`), in order."""
     from gft_odom.bench import record as record_module
     calls = []
 
@@ -98,6 +100,12 @@ def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, monkey
         return {'label': entry.label, 'ate_rmse_m': 0.5}, (np.zeros(2), np.ones(2))
 
     monkeypatch.setattr(record_module, 'run_entry', fake_run_entry)
+    return calls
+
+
+def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, measured_labels):
+    from gft_odom.bench import record as record_module
+    calls = measured_labels
     sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
     a, b = Entry('a', 'default+gft'), Entry('b', 'kiss-icp')
     run_record([a], [sequence], cache_dir=tmp_path / 'cache')
@@ -107,16 +115,9 @@ def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, monkey
     assert record_module.summarize_record(record)['b']['drives'] == 0
 
 
-def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, monkeypatch):
-    from gft_odom.bench import record as record_module
+def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, measured_labels):
     from gft_odom.config import with_values
-    calls = []
-
-    def fake_run_entry(entry, sequence, base):
-        calls.append(entry.label)
-        return {'label': entry.label, 'ate_rmse_m': 0.5}, (np.zeros(2), np.ones(2))
-
-    monkeypatch.setattr(record_module, 'run_entry', fake_run_entry)
+    calls = measured_labels
     sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
     ours, peer = Entry('ours', 'default+gft'), Entry('kiss', 'kiss-icp')
     run_record([ours, peer], [sequence], cache_dir=tmp_path / 'cache')
