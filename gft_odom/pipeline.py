@@ -90,6 +90,10 @@ class FrameResult:
     band: np.ndarray | None
     timings_s: dict[str, float] = field(default_factory=dict)
     rejection: Rejection | None = None  # set when the scan was not registered
+    # Sensor-frame velocity (rot rad/s, lin m/s) and the match's information matrix
+    # (RegistrationResult.twist / .information); zeros / None when not registered.
+    twist: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    information: np.ndarray | None = None
 
     @property
     def fell_back(self) -> bool:
@@ -265,6 +269,7 @@ class OdometryPipeline:
             stamp_ns=int(scan.stamp_ns), T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
             n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
+            twist=reg.twist, information=reg.information,
             timings_s={'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
                        'pipeline': t4 - t0})
 

@@ -253,6 +253,12 @@ class RegistrationResult:
     covariance: np.ndarray  # (6, 6), inflated on fallback
     timings_s: dict[str, float] = field(default_factory=dict)
     deskewed_points: np.ndarray | None = None  # (N, 3) sensor frame at the stamp
+    # (rot_x, rot_y, rot_z, v_x, v_y, v_z) rad/s, m/s in the sensor frame at the stamp: the
+    # motion model's velocity after this scan (zeros when unknown, e.g. after a loss).
+    twist: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    # (6, 6) Gauss-Newton information of the match (x, y, z, rot_x, rot_y, rot_z; the same
+    # axes as `covariance`), None on a fallback: its small eigenvalues are weak directions.
+    information: np.ndarray | None = None
 
     @property
     def fell_back(self) -> bool:
@@ -563,7 +569,8 @@ class ScanRegistration:
             T_world_sensor=T_new.copy(), T_prev_curr=T_prev_curr, fitness=fitness,
             inlier_rmse_m=rmse, n_points_used=n_used, status=status,
             covariance=self._covariance(status, information, R_world_target),
-            timings_s=timings)
+            timings_s=timings, twist=self.velocity.copy(),
+            information=self._rotated_information(status, information, R_world_target))
 
     def _deskew_motion(self, dt_s: float, latest: np.ndarray | None = None) -> np.ndarray:
         """The motion over `dt_s` that deskew assumes: the mean twist of the recent trusted
@@ -740,6 +747,15 @@ class ScanRegistration:
             H[3:, :3] = S
             H[3:, 3:] = np.einsum('ij,ij->', a, a) * np.eye(3) - a.T @ a
         return H / max(rmse, 1e-3) ** 2
+
+    def _rotated_information(self, status: str, information: np.ndarray | None,
+                             R_world_target: np.ndarray) -> np.ndarray | None:
+        """The match's information in the covariance's axes (None on a fallback)."""
+        if status.startswith('fallback') or information is None:
+            return None
+        rotate = np.zeros((6, 6))
+        rotate[:3, :3] = rotate[3:, 3:] = R_world_target
+        return rotate @ information @ rotate.T
 
     def _covariance(self, status: str, information: np.ndarray | None,
                     R_world_target: np.ndarray) -> np.ndarray:
