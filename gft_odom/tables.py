@@ -12,6 +12,7 @@ import math
 METRIC_COLUMNS = {
     'ate_rmse_m': ('ATE RMSE [m]', '{:.3f}'),
     'ate_mean_m': ('ATE mean [m]', '{:.3f}'),
+    'end_error_m': ('end-point error [m]', '{:.3f}'),
     'paper_mse_m2': ('paper MSE [m^2]', '{:.4f}'),
     'rpe_drift_pct': ('RPE drift [%]', '{:.2f}'),
     'latency_median_ms': ('latency median [ms]', '{:.1f}'),
@@ -45,3 +46,10 @@ def markdown_table(rows, cols: tuple[tuple[str, str, str], ...], first_title: st
         cells = [cell(metrics.get(key), fmt) for _, key, fmt in cols]
         lines.append(f'| {name} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
+
+
+def accuracy_line(metrics: dict) -> str:
+    """One line of the accuracy figures of a run, e.g. for a command's printed summary."""
+    parts = [f'{METRIC_COLUMNS[key][0]} {cell(metrics.get(key), METRIC_COLUMNS[key][1])}'
+             for key in ('ate_rmse_m', 'ate_mean_m', 'end_error_m', 'rpe_drift_pct')]
+    return ', '.join(parts)

@@ -58,5 +58,8 @@ def run(args: argparse.Namespace) -> int:
                            max_scans=args.max_scans, progress=update, **extra)
     paths = write_results(replay, config, args.out, figures=not args.no_figures)
     print(json.dumps(replay.metrics, indent=2, sort_keys=True))
+    if 'ate_rmse_m' in replay.metrics:
+        from gft_odom.tables import accuracy_line
+        print(accuracy_line(replay.metrics))
     print('wrote ' + ', '.join(str(p) for p in paths.values()))
     return 0

@@ -48,6 +48,7 @@ def test_json_has_all_methods_with_sane_numbers(bench_outputs):
         # 10 scans at ~1 m/s: an odometry that works is within a metre of the GPS track.
         assert 0.0 <= run['ate_rmse_m'] < 1.0, run
         assert run['ate_mean_m'] <= run['ate_rmse_m'] + 1e-12
+        assert 0.0 <= run['end_error_m'] <= run['ate_max_m'] + 1e-12
         assert math.isclose(run['paper_mse_m2'], run['ate_rmse_m'] ** 2, rel_tol=1e-6)
         assert 0 < run['points_kept_mean'] <= run['points_in_mean']
     kept = {r['method']: r['points_kept_mean'] for r in doc['runs']}
@@ -74,8 +75,14 @@ def test_json_has_all_methods_with_sane_numbers(bench_outputs):
 @pytest.mark.slow
 def test_markdown_and_plots_written(bench_outputs):
     page = (bench_outputs / 'docs' / 'benchmarks.md').read_text()
+    doc = json.loads((bench_outputs / 'results' / 'bench.json').read_text())
     for method in METHODS:
         assert f'| {method} |' in page
+        # CitrusFarm's scoring beside the RMSE: ATE mean, then the end-point error.
+        row = doc['summary'][method]
+        assert (f"| {method} | {row['ate_rmse_m']:.3f} | {row['ate_mean_m']:.3f} | "
+                f"{row['end_error_m']:.3f} |") in page
+    assert '| ATE RMSE [m] | ATE mean [m] | end-point error [m] |' in page
     assert 'synthetic' in page and 'test mask' in page
     for name in ('bench_ate.png', 'bench_latency.png', 'bench_trajectories.png'):
         png = bench_outputs / 'docs' / name

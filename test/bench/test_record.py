@@ -80,12 +80,21 @@ def test_record_runs_every_entry_on_every_drive_and_writes_its_files(tmp_path):
         distance, error = record.error_curves[(entry.label, 'uturn-4')]
         assert distance.shape == error.shape and distance[-1] > 3.0
         assert np.sqrt(np.mean(error ** 2)) == pytest.approx(m['ate_rmse_m'], rel=1e-6)
+        # CitrusFarm's scoring from the same aligned errors: their mean, the last one.
+        assert np.mean(error) == pytest.approx(m['ate_mean_m'], rel=1e-6)
+        assert error[-1] == pytest.approx(m['end_error_m'], rel=1e-6)
     paths = write_record(record, tmp_path / 'out', {'drives': 'test'})
     document = json.loads(paths['json'].read_text())
     assert set(document['summary']) == {e.label for e in entries}
     assert document['summary']['ours']['drives'] == 1
     text = paths['markdown'].read_text()
     assert 'uturn-4' in text and 'ours, 3 keyframes' in text
+    summary = document['summary']['kiss']
+    kiss = record.metrics[('kiss', 'uturn-4')]
+    assert summary['ate_mean_m'] == kiss['ate_mean_m']
+    assert summary['end_error_m'] == kiss['end_error_m']
+    assert f"| {summary['ate_mean_m']:.3f} | {summary['end_error_m']:.3f} |" in text
+    assert "## Mean position error per drive [m] (CitrusFarm's scoring)" in text
     assert paths['figure'].stat().st_size > 10_000
 
 
@@ -124,3 +133,22 @@ def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, measure
     changed = with_values(GftOdomConfig(), {'registration.map_keyframes': 7})
     run_record([ours, peer], [sequence], base=changed, cache_dir=tmp_path / 'cache')
     assert sorted(calls) == ['kiss', 'ours', 'ours']
+
+
+def test_summary_shows_mean_and_end_point_error_and_fills_old_cached_pairs(tmp_path,
+                                                                           measured_labels):
+    from gft_odom.bench import record as record_module
+    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
+    entry = Entry('a', 'default+gft')
+    # The fake run_entry's metrics have no end_error_m, as pairs cached before it existed.
+    first = run_record([entry], [sequence], cache_dir=tmp_path / 'cache')
+    assert 'end_error_m' not in first.metrics[('a', 'spiral-1')]
+    record = run_record([entry], [sequence], cache_dir=tmp_path / 'cache', cached_only=True)
+    # Read back: the error curve's last value (the fake's curve is all ones).
+    assert record.metrics[('a', 'spiral-1')]['end_error_m'] == 1.0
+    summary = record_module.summarize_record(record)
+    assert summary['a']['end_error_m'] == 1.0 and summary['a']['ate_mean_m'] is None
+    table = record_module.summary_markdown(summary)
+    header, _, row = table.splitlines()
+    assert 'mean error [m] | end-point error [m]' in header
+    assert '| 0.500 | n/a | 1.000 |' in row

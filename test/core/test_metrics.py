@@ -483,3 +483,98 @@ def test_rpe_segments_agree_with_evo_where_definitions_coincide(length_m):
     rows = np.array([lookup[int(i)] for i in first])
     np.testing.assert_array_equal(ours_pos.last_idx[rows], last)
     np.testing.assert_allclose(ours_pos.error_pct[rows] * length_m / 100.0, evo_err, atol=1e-6)
+
+
+# --- CitrusFarm's own scoring: mean error and end-point error after rigid alignment ------------
+
+def _circle(n: int, radius_m: float, z_m: np.ndarray | float = 0.0) -> Trajectory:
+    """A robot driving once around a circle, heading along the tangent (n poses, 10 Hz)."""
+    angle = 2.0 * np.pi * np.arange(n) / n
+    positions = np.column_stack([radius_m * np.cos(angle), radius_m * np.sin(angle),
+                                 np.broadcast_to(z_m, (n,))])
+    rotvecs = np.column_stack([np.zeros(n), np.zeros(n), angle + np.pi / 2])
+    return Trajectory(1_700_000_000 * 10**9 + np.arange(n, dtype=np.int64) * PERIOD_NS,
+                      _poses(positions, rotvecs))
+
+
+def test_identical_trajectories_have_zero_mean_and_end_point_error(ref):
+    for mode in ('position', 'se3', 'sim3'):
+        out = TrajectoryEvaluator(mode=mode).metrics(ref, ref)
+        assert out.ate_mean_m < 1e-9 and out.end_error_m < 1e-9
+    assert ate(ref, ref, mode='position').end_error_m < 1e-9
+
+
+@pytest.mark.parametrize('offset_m', [0.05, 0.4, 1.5])
+def test_known_offset_gives_known_mean_and_end_point_error(offset_m):
+    # est runs a circle offset_m wider than ref, its height alternating +-offset_m. By symmetry
+    # the best rigid alignment is the identity (no rotation or shift brings the circles closer),
+    # so every matched pose, the last included, is sqrt(2) * offset_m away.
+    n = 200
+    ref = _circle(n, 10.0)
+    z = offset_m * np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    est = _circle(n, 10.0 + offset_m, z).transformed(rpy_transform((3.0, -2.0, 1.0),
+                                                                   (0.0, 0.0, 0.7)))
+    out = evaluate(est, ref, mode='position')
+    expected = math.sqrt(2.0) * offset_m
+    assert out['ate_mean_m'] == pytest.approx(expected, rel=1e-9)
+    assert out['ate_rmse_m'] == pytest.approx(expected, rel=1e-9)
+    assert out['end_error_m'] == pytest.approx(expected, rel=1e-9)
+
+
+def test_mean_error_with_and_without_the_lever_arm():
+    # The GPS antenna sits 0.22 m behind and 0.153 m above the LiDAR (CitrusFarm). Driving a
+    # circle of radius r with the heading along the tangent, the antenna runs a circle of radius
+    # sqrt(r^2 + 0.22^2), higher and a little behind in phase. Compared without the lever arm,
+    # the alignment takes out the height and the phase, not the radius: every error is the
+    # radius difference. Moved to the antenna first, the sensor track scores 0.
+    from gft_odom.io.ground_truth import GroundTruthConfig
+
+    radius_m = 3.0
+    sensor = _circle(300, radius_m)
+    T_lidar_gps = GroundTruthConfig().T_lidar_gps()
+    antenna = sensor.with_body_offset(T_lidar_gps)
+    lever = np.linalg.norm(GroundTruthConfig().lidar_to_gps_xyz_m[:2])
+    expected = math.hypot(radius_m, lever) - radius_m
+    without = evaluate(sensor, antenna, mode='position')
+    assert without['ate_mean_m'] == pytest.approx(expected, rel=1e-6)
+    assert without['end_error_m'] == pytest.approx(expected, rel=1e-6)
+    with_arm = evaluate(sensor.with_body_offset(T_lidar_gps), antenna, mode='position')
+    assert with_arm['ate_mean_m'] < 1e-9 and with_arm['end_error_m'] < 1e-9
+
+
+def test_end_point_error_is_the_last_aligned_distance_and_uses_a_rigid_alignment(rng, ref):
+    # A drift that grows along the run: the end is the worst place, the mean lies below it.
+    est = Trajectory(ref.stamps_ns, ref.poses.copy())
+    est.poses[:, :3, 3] += np.linspace(0.0, 1.0, len(ref))[:, None] * np.array([0.3, -0.2, 0.1])
+    result = ate(est, ref, mode='position')
+    assert result.end_error_m == pytest.approx(result.errors_m[-1])
+    assert result.end_error_m > result.mean_m > 0.0
+    out = evaluate(est, ref, mode='position')
+    assert out['end_error_m'] == pytest.approx(result.end_error_m, rel=1e-12)
+    json.dumps(out, allow_nan=False)
+    # In sim3 mode the ATE figures are with scale, the end-point error stays rigid (CitrusFarm).
+    sim3 = evaluate(est, ref, mode='sim3')
+    assert sim3['end_error_m'] == pytest.approx(result.end_error_m, rel=1e-12)
+
+
+def test_mean_and_end_point_error_agree_with_evo():
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+
+    for seed in range(3):
+        rng = np.random.default_rng(100 + seed)
+        ref = _random_trajectory(rng, 300)
+        est = _noisy(ref, rng, sigma_m=0.2, sigma_rad=0.02, jitter_ns=20_000_000)
+        est.poses[:, :3, 3] += np.cumsum(rng.normal(0.0, 0.02, (len(est), 3)), axis=0)
+        est = est.transformed(rpy_transform((4.0, -2.0, 0.3), (0.01, 0.02, 0.8)))
+        out = evaluate(est, ref, mode='position', max_diff_s=0.05)
+        evo_ref, evo_est = sync.associate_trajectories(_to_evo(ref), _to_evo(est), max_diff=0.05)
+        evo_est = copy.deepcopy(evo_est)
+        evo_est.align(evo_ref, correct_scale=False)
+        ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+        ape.process_data((evo_ref, evo_est))
+        assert out['ate_mean_m'] == pytest.approx(ape.get_statistic(
+            evo_metrics.StatisticsType.mean), abs=1e-6)
+        assert out['end_error_m'] == pytest.approx(float(ape.error[-1]), abs=1e-6)
+        end_gap = np.linalg.norm(evo_est.positions_xyz[-1] - evo_ref.positions_xyz[-1])
+        assert out['end_error_m'] == pytest.approx(end_gap, abs=1e-6)
