@@ -9,6 +9,8 @@ import logging
 from gft_odom.sim.motion import ROUTES, SCENARIOS
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
 from gft_odom.sim.writer import simulate_to_bag
+from gft_odom.tools.args import add_switches
+from gft_odom.tools.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -45,12 +47,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--azimuth-step-deg', type=float, default=SimConfig.azimuth_step_deg,
                    help='horizontal resolution (0.2 = real VLP-16; coarser is faster)')
     p.add_argument('--no-png', action='store_true', help='skip topdown.png')
+    add_switches(p, figures=False)
 
 
 def run(args: argparse.Namespace) -> int:
     """Simulate the drive and write its bag and ground truth."""
-    from tqdm import tqdm
-
     config = dataclasses.replace(SimConfig(), motion_distortion=not args.no_distortion,
                                  legacy_fields=args.legacy_fields,
                                  azimuth_step_deg=args.azimuth_step_deg)
@@ -61,10 +62,11 @@ def run(args: argparse.Namespace) -> int:
     if scans is None:  # the whole route: its length is known once it is planned (cheap)
         total = ScanSimulator.for_drive(config, args.scenario, args.seed, None,
                                         args.distance_m, args.vary)[0].n_scans_in_drive
-    with tqdm(total=total, unit='scan', desc=f'simulate {args.scenario}') as bar:
+    # The bar shows on a terminal only: `simulate ... > log 2>&1` writes no bar into the log.
+    with progress_bar(total, f'simulate {args.scenario}', enabled=not args.quiet) as update:
         result = simulate_to_bag(args.out, args.scenario, scans, args.seed, config,
                                  fmt=args.fmt, topdown_png=not args.no_png,
-                                 progress=lambda done: bar.update(done - bar.n),
+                                 progress=lambda done: update(done),
                                  distance_m=args.distance_m, vary=args.vary)
     print(f'bag:          {result.bag_path}')
     print(f'ground truth: {result.gt_csv_path}')

@@ -41,3 +41,22 @@ def test_on_a_terminal_logging_goes_through_the_bar(monkeypatch):
     with progress.progress_bar(10, 'quiet', enabled=False) as update:
         update(1)
     assert 'quiet' not in err.getvalue()
+
+
+def test_only_the_progress_helper_imports_tqdm():
+    """One helper for every long command: the core, the simulator and the commands hand it a
+    callback; none of them draws a bar of its own."""
+    import ast
+    from pathlib import Path
+
+    import gft_odom
+
+    package = Path(gft_odom.__file__).parent
+    importers = []
+    for path in sorted(package.rglob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ''] if isinstance(node, ast.ImportFrom) else [])
+            if any(name.split('.')[0] == 'tqdm' for name in names):
+                importers.append(path.relative_to(package).as_posix())
+    assert sorted(set(importers)) == ['tools/progress.py']
