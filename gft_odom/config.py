@@ -49,6 +49,10 @@ class PipelineConfig:
                 f'max_points_per_scan must be >= 100, got {self.max_points_per_scan}')
 
 
+# node.input_reliability: adaptive like rosbag2, or forced.
+INPUT_RELIABILITIES = ('auto', 'reliable', 'best_effort')
+
+
 @dataclass(frozen=True)
 class NodeConfig:
     """ROS-facing settings of `filter_odom_node` (frames, extrinsic, publishing, lag policy)."""
@@ -68,10 +72,19 @@ class NodeConfig:
     # sweeps instead of working through a queue of old ones (latency stays one processing
     # time); the skipped sweeps are counted from the gaps between stamps (`missed`).
     input_queue_depth: int = 1
-    # Reliable input: no cloud is lost, but the publisher must be reliable too and a lagging
-    # node back-pressures it. For lossless lockstep replays (`gft-odom replay --through-node`);
-    # on the robot, best effort (sensor-data QoS) is what drivers expect.
-    input_reliable: bool = False
+    # Reliability of the input subscription: auto (like rosbag2: reliable when every publisher
+    # on the topic is reliable, so the stock velodyne driver is lossless without a Fast DDS
+    # profile; best effort when any is best effort; re-checked as publishers come and go),
+    # reliable or best_effort. A qos_overrides reliability for the topic forces it too.
+    input_reliability: str = 'auto'
+    # Folder where `~/save_map` writes the map (binary PCD) and the trajectory (TUM); `~` is
+    # expanded, a relative path is relative to the node's working directory.
+    save_map_dir: str = '~/.ros/gft_odom_maps'
+    # `/diagnostics` WARNs when the weakest translation direction of the match has less than
+    # this fraction of the strongest one's information (0 = never): motion along it leans on
+    # the motion prior. Measured in the simulator: along an orchard row ~0.3 (x), continuous
+    # hedges ~0.1, open ground ~0.002.
+    weak_direction_warn_ratio: float = 0.02
 
     def validate(self) -> None:
         """Raise ConfigError naming the first value that cannot work."""
@@ -92,6 +105,14 @@ class NodeConfig:
             raise ConfigError(f'max_scan_age_s must be > 0, got {self.max_scan_age_s}')
         if not 1 <= self.input_queue_depth <= 100:
             raise ConfigError(f'input_queue_depth must be in 1..100, got {self.input_queue_depth}')
+        if self.input_reliability not in INPUT_RELIABILITIES:
+            raise ConfigError(f'input_reliability must be one of {", ".join(INPUT_RELIABILITIES)}'
+                              f', got {self.input_reliability!r}')
+        if not self.save_map_dir.strip():
+            raise ConfigError('save_map_dir must be a folder path, got an empty string')
+        if not 0.0 <= self.weak_direction_warn_ratio < 1.0:
+            raise ConfigError(f'weak_direction_warn_ratio must be in [0, 1), got '
+                              f'{self.weak_direction_warn_ratio}')
 
 
 @dataclass(frozen=True)

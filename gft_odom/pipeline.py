@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
+from gft_odom.core.bounds_watch import BoundsWatch
 from gft_odom.core.constants import NS_PER_S
-from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses
+from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transform_points
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
@@ -132,6 +133,9 @@ class OdometryPipeline:
         self.frequency_source = make_source(self.spectral_filter)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
+        # Says once when the motion bounds keep refusing matches that agree (a fast platform).
+        self.bounds_watch = BoundsWatch(config.registration.max_speed_mps,
+                                        config.registration.max_yaw_rate_rps)
         self.status_counts: Counter[str] = Counter()
         self._stamps_ns: list[int] = []
         self._poses: list[np.ndarray] = []
@@ -262,6 +266,7 @@ class OdometryPipeline:
         t4 = time.perf_counter()  # a local-map source's keyframe update is filter time
         T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
+        self.bounds_watch.observe(reg.status, reg.refused_speed_mps, reg.refused_rate_rps)
         if self.record_trajectory:
             self._stamps_ns.append(int(scan.stamp_ns))
             self._poses.append(reg.T_world_sensor)
@@ -310,6 +315,29 @@ class OdometryPipeline:
         self.frequency_source = make_source(self.spectral_filter)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
+
+    def map_snapshot(self, latest: FrameResult | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The registration's current map in the odom frame (REP 105, as the trajectory):
+        (points_xyz (N, 3) float64, nu (N,) float32). The map keeps no frequencies: a point
+        takes the frequency of the nearest point of `latest` (the last frame, its filtered
+        cloud) within one map voxel, NaN elsewhere or without `latest`. Paper mode has no
+        map: its reference, the last trusted scan, is returned."""
+        from scipy.spatial import cKDTree
+        reg = self.registration
+        points = reg.local_map.points_xyz
+        if not len(points) and reg._prev_scan is not None:
+            points = transform_points(reg.T_world_trusted, np.asarray(reg._prev_scan.points))
+        points = np.array(points, dtype=np.float64).reshape(-1, 3)
+        nu = np.full(points.shape[0], np.nan, dtype=np.float32)
+        if (latest is not None and latest.nu is not None and len(latest.filtered)
+                and points.shape[0]):
+            seen = transform_points(latest.T_world_sensor, latest.filtered.points_xyz)
+            dist, index = cKDTree(seen).query(points, distance_upper_bound=max(
+                self.config.registration.map_voxel_size_m, 1e-3))
+            near = np.isfinite(dist)
+            nu[near] = latest.nu[index[near]]
+        return transform_points(self.T_base_sensor, points), nu
 
     def sensor_trajectory(self) -> Trajectory:
         """T_world_sensor of every registered scan (world = first sensor frame)."""

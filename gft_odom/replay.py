@@ -21,12 +21,14 @@ import numpy as np
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.metrics import TrajectoryEvaluator
+from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import BagError, GftOdomError, GroundTruthError
 from gft_odom.io.atomic import make_temp_dir, replace, write_text_atomic
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
+from gft_odom.io.pcd import frequency_cloud, write_pcd
 from gft_odom.io.tum import write_tum
 from gft_odom.params_file import write_params_file
 from gft_odom.pipeline import FrameResult, OdometryPipeline
@@ -83,8 +85,11 @@ def is_gps_ground_truth(path: str | Path) -> bool:
 def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                gt_path: str | Path | None = None, topic: str = '/velodyne_points',
                max_scans: int | None = None,
-               progress: Callable[[int, int], None] | None = None) -> ReplayResult:
-    """Replay the scans of `bag_paths` through the pipeline; evaluate against `gt_path`."""
+               progress: Callable[[int, int], None] | None = None,
+               save_map_dir: str | Path | None = None) -> ReplayResult:
+    """Replay the scans of `bag_paths` through the pipeline; evaluate against `gt_path`.
+    `save_map_dir`: write the final map and the trajectory there (`write_map`), as the
+    node's `~/save_map` does."""
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
     pipeline = OdometryPipeline(config)
     rng = np.random.default_rng(0)
@@ -92,6 +97,7 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     stages: dict[str, list[float]] = {}
     map_xyz, map_nu = [], []
     rejected: Counter[str] = Counter()
+    last: FrameResult | None = None
     with ScanBagReader(list(bag_paths), topic=topic) as reader:
         total = scan_count(reader, max_scans)
         for i, (scan, t_decode) in enumerate(timed_scans(reader, total)):
@@ -108,6 +114,7 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             points_in.append(result.n_points_in)
             points_kept.append(result.n_points_kept)
             statuses.append(result.status)
+            last = result
             _sample_map(result, rng, map_xyz, map_nu)
         skipped = getattr(reader, 'skipped', 0)
     if not statuses:
@@ -129,6 +136,15 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         rejected=dict(rejected), ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
     replay.metrics = summarize(replay, config)
+    # Said once in the log when it happened; kept with the results.
+    replay.metrics['motion_bounds'] = pipeline.bounds_watch.message
+    if save_map_dir is not None:
+        points, nu = pipeline.map_snapshot(last)
+        pcd, tum = write_map(save_map_dir, points, nu, config.spectral.n_bands,
+                             pipeline.base_trajectory())
+        replay.metrics['saved_map'] = {'pcd': str(pcd), 'trajectory': str(tum),
+                                       'points': int(points.shape[0])}
+        log.info('map of %d points written to %s, trajectory to %s', points.shape[0], pcd, tum)
     return replay
 
 
@@ -187,6 +203,23 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
             raise GroundTruthError(f'cannot evaluate against the ground truth: {exc}') from exc
         metrics['ground_truth_frame'] = 'gps_antenna' if replay.ground_truth_is_gps else 'sensor'
     return metrics
+
+
+MAP_FILE = 'map.pcd'
+MAP_TRAJECTORY_FILE = 'trajectory_tum.txt'
+
+
+def write_map(folder: str | Path, points_xyz: np.ndarray, nu: np.ndarray, n_bands: int,
+              trajectory: Trajectory) -> tuple[Path, Path]:
+    """The map as a binary PCD (x y z intensity frequency band; frequency NaN and band 0
+    where unknown) and the trajectory as TUM, both in the odom frame, into `folder`:
+    (pcd path, TUM path). `OdometryPipeline.map_snapshot` gives the points and frequencies."""
+    folder = Path(folder).expanduser()
+    folder.mkdir(parents=True, exist_ok=True)
+    nu = np.asarray(nu, dtype=np.float32)
+    write_pcd(folder / MAP_FILE, frequency_cloud(points_xyz, None, nu, band_of_nu(nu, n_bands)))
+    write_tum(folder / MAP_TRAJECTORY_FILE, trajectory)
+    return folder / MAP_FILE, folder / MAP_TRAJECTORY_FILE
 
 
 def write_json(path: Path, data: dict) -> None:

@@ -259,6 +259,10 @@ class RegistrationResult:
     # (6, 6) Gauss-Newton information of the match (x, y, z, rot_x, rot_y, rot_z; the same
     # axes as `covariance`), None on a fallback: its small eigenvalues are weak directions.
     information: np.ndarray | None = None
+    # The speed (m/s) and rotation rate (rad/s) a match refused as implausible implied, since
+    # the last trusted pose; None unless status is fallback_implausible from the match.
+    refused_speed_mps: float | None = None
+    refused_rate_rps: float | None = None
 
     @property
     def fell_back(self) -> bool:
@@ -394,6 +398,9 @@ class ScanRegistration:
         cfg = self.config
         distance_m, angle_rad = transform_magnitude(T_prev_curr)
         slack = (1.0 + cfg.motion_margin) * max(dt_s, 0.0)
+        # What the motion implies, for a caller that reports a refusal (the bounds watch).
+        self.last_implied_rates = ((distance_m / dt_s, angle_rad / dt_s) if dt_s > 0.0
+                                   else (float('inf'), float('inf')))
         return (distance_m <= cfg.max_speed_mps * slack
                 and angle_rad <= cfg.max_yaw_rate_rps * slack)
 
@@ -479,6 +486,7 @@ class ScanRegistration:
         # 3. Decide: first scan, too few points, re-acquisition or ICP against the reference.
         n_used = int(source_xyz.shape[0])
         match = None
+        refused = (None, None)  # the rates a match refused as implausible implied
         if n_used < self.config.min_points:
             status, T_new = 'fallback_too_few_points', T_pred
             if not self.has_reference:
@@ -492,7 +500,10 @@ class ScanRegistration:
             if self.recovering and self.mode == 'default':
                 match = self._reacquire(source_xyz, T_pred, stamp_ns)
             else:
+                self.last_implied_rates = (None, None)  # set by is_plausible in the match
                 match = self._match(source_xyz, T_pred, stamp_ns)
+                refused = (self.last_implied_rates if match[0] == 'fallback_implausible'
+                           else (None, None))
                 if (match[0] in RETRIED_STATUSES and self.mode == 'default'
                         and self.config.retry_failed_match):
                     retried = self._reacquire(source_xyz, T_pred, stamp_ns, retry=True)
@@ -521,6 +532,8 @@ class ScanRegistration:
                                  self._deskew_motion(dt_s, T_prev_curr), dt_s)
         result = self._finish(stamp_ns, dt_s, status, T_new, n_used, t_start, timings,
                               source_xyz, match, keyframe_xyz)
+        if status == 'fallback_implausible':
+            result.refused_speed_mps, result.refused_rate_rps = refused
         if self.config.output_deskewed_points:
             result.deskewed_points = points_xyz.copy() if offsets_s is None else deskew_points(
                 points_xyz, offsets_s,

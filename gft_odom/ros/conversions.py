@@ -52,14 +52,29 @@ def pose_msg(T: np.ndarray) -> Pose:
 
 
 def odometry_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str, base_frame: str,
-                 covariance: np.ndarray) -> Odometry:
-    """nav_msgs/Odometry of odom -> base_link with its pose covariance."""
+                 covariance: np.ndarray, twist: np.ndarray | None = None,
+                 twist_covariance: np.ndarray | None = None) -> Odometry:
+    """nav_msgs/Odometry of odom -> base_link with its pose covariance and, when given, the
+    twist of base_link in its own axes ([v_x, v_y, v_z, w_x, w_y, w_z]) and its covariance."""
     msg = Odometry()
     msg.header = Header(stamp=ns_to_stamp(stamp_ns), frame_id=odom_frame)
     msg.child_frame_id = base_frame
     msg.pose.pose = pose_msg(T_odom_base)
     msg.pose.covariance = [float(v) for v in np.asarray(covariance, dtype=float).reshape(36)]
+    if twist is not None:
+        v = [float(x) for x in twist]
+        msg.twist.twist.linear = Vector3(x=v[0], y=v[1], z=v[2])
+        msg.twist.twist.angular = Vector3(x=v[3], y=v[4], z=v[5])
+    if twist_covariance is not None:
+        msg.twist.covariance = [float(x) for x in
+                                np.asarray(twist_covariance, dtype=float).reshape(36)]
     return msg
+
+
+def odometry_twist(msg: Odometry) -> np.ndarray:
+    """[v_x, v_y, v_z, w_x, w_y, w_z] of an Odometry message."""
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    return np.array([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z])
 
 
 def pose_stamped_msg(T: np.ndarray, stamp_ns: int, frame_id: str) -> PoseStamped:

@@ -2,7 +2,9 @@
 
 Judged over a sliding window of the last `WINDOW_S` seconds, so a problem clears itself once it
 stops: the share of scans that fell back to the motion prediction, the latency against the
-sensor period, the share of sweeps missed or dropped as stale, and the scans rejected.
+sensor period, the share of sweeps missed or dropped as stale, and the scans rejected. Beside
+them, not windowed: the weakest translation direction of the last match (WARN below
+`node.weak_direction_warn_ratio`) and the motion bounds' message once it was told.
 """
 
 from __future__ import annotations
@@ -36,8 +38,12 @@ class OdometryDiagnostics:
         self._snapshots: collections.deque = collections.deque()
         self._window_s = window_s
 
-    def assess(self, now_s: float, counters, latencies_s, period_s: float) -> Assessment:
-        """OK / WARN / ERROR over the last window from counters and latencies."""
+    def assess(self, now_s: float, counters, latencies_s, period_s: float,
+               weak=None, weak_warn_ratio: float = 0.0,
+               bounds_message: str | None = None) -> Assessment:
+        """OK / WARN / ERROR over the last window from counters and latencies; `weak`: the
+        last match's `WeakDirection` (core.degeneracy), WARN when its ratio is below
+        `weak_warn_ratio`; `bounds_message`: the motion bounds' line (WARN)."""
         current = dict(counters)
         self._snapshots.append((now_s, current))
         while self._snapshots and now_s - self._snapshots[0][0] > self._window_s:
@@ -74,6 +80,12 @@ class OdometryDiagnostics:
                                    f'{1e3 * period_s:.0f} ms'))
         if rejected:
             problems.append((WARN, f'{rejected} scan(s) rejected'))
+        if weak is not None and weak.ratio < weak_warn_ratio:
+            problems.append((WARN, f'weak: {weak.text} in the base frame '
+                                   f"({100 * weak.ratio:.1f} % of the strongest direction's "
+                                   'information; it leans on the motion prior)'))
+        if bounds_message:
+            problems.append((WARN, bounds_message))
         level = max((lvl for lvl, _ in problems), default=OK)
         message = '; '.join(text for _, text in problems) or 'tracking'
         values = {
@@ -83,6 +95,9 @@ class OdometryDiagnostics:
             'latency_median_ms': f'{1e3 * median_s:.1f}' if median_s is not None else 'n/a',
             'latency_p95_ms': f'{1e3 * p95_s:.1f}' if p95_s is not None else 'n/a',
         }
+        if weak is not None:
+            values['weakest_direction'] = weak.text
+            values['weakest_direction_ratio'] = f'{weak.ratio:.4f}'
         values.update({f'total_{k}': str(v) for k, v in sorted(current.items())})
         return Assessment(level, message, values)
 

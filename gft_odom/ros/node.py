@@ -1,18 +1,23 @@
 """`filter_odom_node`: VLP-16 PointCloud2 in, graph-frequency filtered odometry out.
 
-Subscribes `points` (remap it to `/velodyne_points`) with sensor-data QoS; publishes
-`~/filtered_points`, `~/odometry` (odom -> base_link, REP 105), `~/path`, `/tf` and
-`/diagnostics`; serves `~/reset`. Parameters are declared from the `GftOdomConfig` dataclasses,
-so their defaults live in one place. Bad input is logged (rate-limited) and skipped: the node
-keeps running.
+Subscribes `points` (remap it to `/velodyne_points`) with the publishers' reliability (like
+rosbag2: reliable when every publisher is, else best effort; `node.input_reliability`);
+publishes `~/filtered_points`, `~/odometry` (odom -> base_link, REP 105, pose and twist),
+`~/path`, `/tf` and `/diagnostics`; serves `~/reset` and `~/save_map`. The input and the three
+`~/` outputs take REP-2003 QoS overrides (`qos_overrides.<topic>.<publisher|subscription>.
+<reliability|depth|history|durability>` in the params file). Parameters are declared from the
+`GftOdomConfig` dataclasses, so their defaults live in one place. Bad input is logged
+(rate-limited) and skipped: the node keeps running.
 """
 
 from __future__ import annotations
 
 import collections
+import datetime
 import signal
 import sys
 import time
+from pathlib import Path as FilePath
 
 import numpy as np
 import rclpy
@@ -24,16 +29,28 @@ from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSPolicyKind,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from gft_odom.config import GftOdomConfig, flatten, with_values
 from gft_odom.core.constants import NODE_NAME, NS_PER_S
+from gft_odom.core.degeneracy import weakest_translation
+from gft_odom.core.geometry import poses_from_xyz_quat, xyz_quat_from_poses
+from gft_odom.core.trajectory import Trajectory
+from gft_odom.core.twist import base_twist, base_twist_covariance, unknown_twist_covariance
 from gft_odom.errors import GftOdomError
 from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
 from gft_odom.pipeline import FrameResult, OdometryPipeline
+from gft_odom.replay import write_map
 from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg, transform_msg
 from gft_odom.ros.dds import use_large_message_profile
 from gft_odom.ros.diagnostics import OdometryDiagnostics, diagnostic_array
@@ -56,6 +73,29 @@ PATH_PERIOD_S = 1.0
 PERIOD_SAMPLES = 21
 # A stamp this far from the clock is not lag but a clock mismatch (a bag without --clock).
 CLOCK_MISMATCH_S = 60.0
+# node.input_reliability auto: how often the publishers of the input topic are looked at.
+INPUT_QOS_CHECK_S = 0.5
+# The QoS policies a params file may override (REP 2003) on the input and the ~/ outputs.
+OVERRIDABLE = (QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY,
+               QoSPolicyKind.DURABILITY)
+RELIABILITY_NAMES = {ReliabilityPolicy.RELIABLE: 'reliable',
+                     ReliabilityPolicy.BEST_EFFORT: 'best_effort'}
+
+
+def overridable(*kinds) -> QoSOverridingOptions:
+    """REP-2003 overrides of `kinds` (declared read-only parameters, set from a params file)."""
+    return QoSOverridingOptions(kinds or OVERRIDABLE)
+
+
+def adaptive_reliability(publisher_reliabilities) -> ReliabilityPolicy | None:
+    """rosbag2's rule: reliable when every publisher is reliable, best effort when any is
+    best effort, None when there is no publisher (nothing to decide yet)."""
+    found = list(publisher_reliabilities)
+    if not found:
+        return None
+    if all(r == ReliabilityPolicy.RELIABLE for r in found):
+        return ReliabilityPolicy.RELIABLE
+    return ReliabilityPolicy.BEST_EFFORT
 
 
 def _ros_value(value):
@@ -93,34 +133,40 @@ class FilterOdomNode(Node):
         self.last_frame_id: str | None = None
         self._stamp_steps_ns: collections.deque[int] = collections.deque(maxlen=PERIOD_SAMPLES)
         self._path_dirty = False
+        # For the twist, the weakest direction and ~/save_map: the last registered frame and
+        # the whole trajectory since the start or the last reset (stamp, x y z qx qy qz qw).
+        self.last_result: FrameResult | None = None
+        self._weak = None
+        self._trajectory_stamps_ns: list[int] = []
+        self._trajectory_xyzq: list[np.ndarray] = []
 
         # Reliable: matches both reliable (RViz's default) and best-effort subscribers; keep
         # last 1, so a slow subscriber costs the newest cloud only.
         self.cloud_pub = self.create_publisher(
             PointCloud2, '~/filtered_points',
-            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE),
+            qos_overriding_options=overridable())
         # Transient local (latched): a subscriber that joins late (a recorder, RViz, a replay
         # harness whose reader is still being matched) still gets the recent poses and the
         # path. Volatile subscribers are compatible with it.
         latched = DurabilityPolicy.TRANSIENT_LOCAL
         self.odom_pub = self.create_publisher(Odometry, '~/odometry',
-                                              QoSProfile(depth=50, durability=latched))
+                                              QoSProfile(depth=50, durability=latched),
+                                              qos_overriding_options=overridable())
         self.path_pub = self.create_publisher(Path, '~/path',
-                                              QoSProfile(depth=1, durability=latched))
+                                              QoSProfile(depth=1, durability=latched),
+                                              qos_overriding_options=overridable())
         self.tf_pub = make_tf_publisher(self) if self.config.node.publish_tf else None
         self.diagnostics = OdometryDiagnostics()
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_service(Trigger, '~/reset', self._on_reset)
-        input_qos = QoSProfile(depth=self.config.node.input_queue_depth,
-                               reliability=(ReliabilityPolicy.RELIABLE
-                                            if self.config.node.input_reliable
-                                            else qos_profile_sensor_data.reliability),
-                               durability=qos_profile_sensor_data.durability,
-                               history=qos_profile_sensor_data.history)
-        self.create_subscription(PointCloud2, 'points', self._on_cloud, input_qos)
+        self.create_service(Trigger, '~/save_map', self._on_save_map)
         # Wall-clock timers: with use_sim_time the ROS clock only moves with /clock (a lockstep
         # replay advances it 0.1 s per scan), and these are about the process, not the data.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.input_sub = None
+        self.input_reliability: ReliabilityPolicy | None = None
+        self._subscribe_input(steady)
         self.create_timer(SUMMARY_PERIOD_S, self._log_summary, clock=steady)
         self.create_timer(PATH_PERIOD_S, self._publish_path, clock=steady)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=steady)
@@ -129,6 +175,63 @@ class FilterOdomNode(Node):
             f'(n_bands={self.config.spectral.n_bands}, band_mask='
             f'{list(self.config.spectral.band_mask)}), registration mode '
             f'{self.config.registration.mode}')
+
+    # -- input QoS -------------------------------------------------------------------------
+
+    @property
+    def input_topic(self) -> str:
+        """The input topic after remapping (`points` -> e.g. /velodyne_points)."""
+        return self.resolve_topic_name('points')
+
+    def _reliability_override(self) -> str | None:
+        """The REP-2003 reliability override of the input from the params file, if any."""
+        name = f'qos_overrides.{self.input_topic}.subscription.reliability'
+        override = self._parameter_overrides.get(name)
+        return None if override is None else str(override.value)
+
+    def _subscribe_input(self, steady: Clock) -> None:
+        """Forced reliability: subscribe now. Auto: subscribe as the publishers are, and look
+        again every INPUT_QOS_CHECK_S (a publisher that comes, goes or changes)."""
+        forced = self._reliability_override()
+        mode = self.config.node.input_reliability
+        if forced is not None or mode != 'auto':
+            policy = (ReliabilityPolicy.RELIABLE if mode == 'reliable'
+                      else ReliabilityPolicy.BEST_EFFORT)
+            how = ('the qos_overrides parameter' if forced is not None
+                   else f'node.input_reliability: {mode}')
+            self._create_input(policy, how)
+            return
+        self._check_input_qos()
+        self.create_timer(INPUT_QOS_CHECK_S, self._check_input_qos, clock=steady)
+
+    def _check_input_qos(self) -> None:
+        """Auto: (re)subscribe when the publishers' reliability asks for another one."""
+        publishers = self.get_publishers_info_by_topic(self.input_topic)
+        policy = adaptive_reliability(p.qos_profile.reliability for p in publishers)
+        if policy is None or policy == self.input_reliability:
+            return
+        kinds = collections.Counter(RELIABILITY_NAMES.get(p.qos_profile.reliability, 'other')
+                                    for p in publishers)
+        self._create_input(policy, 'auto, publishers: ' + ', '.join(
+            f'{n} {k}' for k, n in sorted(kinds.items())))
+
+    def _create_input(self, policy: ReliabilityPolicy, how: str) -> None:
+        """(Re)create the input subscription with `policy` (overrides still apply)."""
+        if self.input_sub is not None:
+            self.destroy_subscription(self.input_sub)
+        qos = QoSProfile(depth=self.config.node.input_queue_depth,
+                         history=HistoryPolicy.KEEP_LAST, reliability=policy,
+                         durability=DurabilityPolicy.VOLATILE)
+        # Reliability is overridable only when the params file sets it: a parameter declared
+        # from the first choice would pin auto to it.
+        kinds = OVERRIDABLE if self._reliability_override() is not None else tuple(
+            k for k in OVERRIDABLE if k != QoSPolicyKind.RELIABILITY)
+        self.input_sub = self.create_subscription(PointCloud2, 'points', self._on_cloud, qos,
+                                                  qos_overriding_options=overridable(*kinds))
+        self.input_reliability = qos.reliability
+        self.get_logger().info(
+            f'input {self.input_topic}: {RELIABILITY_NAMES.get(qos.reliability, "?")}, depth '
+            f'{qos.depth} ({how})')
 
     # -- parameters ------------------------------------------------------------------------
 
@@ -251,12 +354,38 @@ class FilterOdomNode(Node):
         self.last_stamp_ns = scan.stamp_ns
         return True
 
+    def twist_of(self, result: FrameResult) -> tuple[np.ndarray, np.ndarray]:
+        """base_link's twist in its own axes (linear first) and its covariance (core/twist.py):
+        the motion model's velocity after a match, zero with the bounds as std otherwise."""
+        reg_cfg = self.config.registration
+        last = self.last_result
+        step_s = ((result.stamp_ns - last.stamp_ns) * 1e-9
+                  if last is not None and result.stamp_ns > last.stamp_ns
+                  else self.scan_period_s())
+        if result.fell_back or result.status == 'first' or not np.any(result.twist):
+            return np.zeros(6), unknown_twist_covariance(reg_cfg.max_speed_mps,
+                                                         reg_cfg.max_yaw_rate_rps)
+        T_base_sensor = self.pipeline.T_base_sensor
+        return (base_twist(result.twist, T_base_sensor, step_s),
+                base_twist_covariance(result.covariance, result.T_world_sensor[:3, :3],
+                                      T_base_sensor, step_s))
+
     def _publish(self, result: FrameResult, header) -> None:
         node_cfg = self.config.node
         stamp_ns = result.stamp_ns
+        twist, twist_cov = self.twist_of(result)
         odom = odometry_msg(result.T_odom_base, stamp_ns, node_cfg.odom_frame,
-                            node_cfg.base_frame, result.covariance)
+                            node_cfg.base_frame, result.covariance, twist, twist_cov)
         self.odom_pub.publish(odom)
+        if result.information is not None:
+            # The information is in the world (first sensor) axes: into base_link's.
+            R_base_world = (self.pipeline.T_base_sensor[:3, :3]
+                            @ result.T_world_sensor[:3, :3].T)
+            self._weak = weakest_translation(result.information, R_base_world)
+        self.last_result = result
+        xyz, quat = xyz_quat_from_poses(result.T_odom_base[None])
+        self._trajectory_stamps_ns.append(int(stamp_ns))
+        self._trajectory_xyzq.append(np.concatenate([xyz[0], quat[0]]))
         self.path_poses.append(pose_stamped_msg(result.T_odom_base, stamp_ns,
                                                 node_cfg.odom_frame))
         self.path.header.stamp = odom.header.stamp
@@ -286,9 +415,11 @@ class FilterOdomNode(Node):
         self._path_dirty = False
 
     def _publish_diagnostics(self) -> None:
-        assessment = self.diagnostics.assess(time.monotonic(), self.counters,
-                                             list(self.latencies_s)[-100:],
-                                             self.scan_period_s())
+        assessment = self.diagnostics.assess(
+            time.monotonic(), self.counters, list(self.latencies_s)[-100:],
+            self.scan_period_s(), weak=self._weak,
+            weak_warn_ratio=self.config.node.weak_direction_warn_ratio,
+            bounds_message=self.pipeline.bounds_watch.message)
         self.diagnostics_pub.publish(diagnostic_array(
             assessment, self.get_clock().now().to_msg(), f'{self.get_name()}: odometry',
             self.last_frame_id or 'lidar'))
@@ -302,6 +433,9 @@ class FilterOdomNode(Node):
             self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
         self.path_poses.clear()
         self._path_dirty = True
+        self.last_result = None
+        self._weak = None
+        self._trajectory_stamps_ns, self._trajectory_xyzq = [], []
         self.last_stamp_ns = None
         self.last_received_stamp_ns = None
         self._stamp_steps_ns.clear()
@@ -309,6 +443,35 @@ class FilterOdomNode(Node):
         self.get_logger().info('odometry reset: the next scan starts at the identity')
         response.success = True
         response.message = 'odometry reset'
+        return response
+
+    def trajectory(self) -> Trajectory:
+        """T_odom_base of every published scan since the start or the last reset."""
+        stamps = np.array(self._trajectory_stamps_ns, dtype=np.int64)
+        if not stamps.size:
+            return Trajectory(stamps, np.zeros((0, 4, 4)))
+        xyzq = np.array(self._trajectory_xyzq)
+        return Trajectory(stamps, poses_from_xyz_quat(xyzq[:, :3], xyzq[:, 3:]))
+
+    def _on_save_map(self, request, response):
+        """`~/save_map`: the map (binary PCD with frequencies) and the trajectory (TUM), in the
+        odom frame, into a new folder under node.save_map_dir; the response says where."""
+        stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S_%f')
+        folder = FilePath(self.config.node.save_map_dir).expanduser() / f'map_{stamp}'
+        try:
+            points, nu = self.pipeline.map_snapshot(self.last_result)
+            trajectory = self.trajectory()
+            pcd, tum = write_map(folder, points, nu, self.config.spectral.n_bands, trajectory)
+        except (OSError, GftOdomError) as exc:
+            response.success = False
+            response.message = f'map not saved to {folder}: {exc}'
+            self.get_logger().error(response.message)
+            return response
+        response.success = True
+        response.message = (f'saved {points.shape[0]} map points ({int(np.isfinite(nu).sum())} '
+                            f'with a frequency) to {pcd.resolve()} and {len(trajectory)} poses '
+                            f'to {tum.resolve()} ({self.config.node.odom_frame} frame)')
+        self.get_logger().info(response.message)
         return response
 
     def destroy_node(self) -> None:

@@ -106,7 +106,7 @@ def stop_feeder(context, node, executor) -> None:
 
 
 def _launch_node(exe: Path, config: GftOdomConfig, topic: str, env: dict[str, str],
-                 log_path: str | Path | None):
+                 log_path: str | Path | None, save_map_dir: str | Path | None = None):
     """Start filter_odom_node with the config as its params file, sim time and lockstep QoS:
     (process, temporary folder, node log, domain id)."""
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -121,8 +121,10 @@ def _launch_node(exe: Path, config: GftOdomConfig, topic: str, env: dict[str, st
     # of a run in every resend.
     cmd = [str(exe), '--ros-args', '--params-file', str(params_path),
            '-p', 'use_sim_time:=true', '-p', 'node.input_queue_depth:=10',
-           '-p', 'node.input_reliable:=true',
+           '-p', 'node.input_reliability:=reliable',
            '-r', f'points:={topic}']
+    if save_map_dir is not None:
+        cmd[-2:-2] = ['-p', f'node.save_map_dir:={Path(save_map_dir).resolve()}']
     log.info('starting %s (ROS_DOMAIN_ID=%d)', ' '.join(cmd), domain_id)
     with open(node_log, 'w') as log_file:
         proc = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
@@ -201,6 +203,21 @@ class _Feeder:
             got = self.spin_until(lambda: stamp_ns in self.odometry, RESEND_AFTER_S)
         return got
 
+    def save_map(self, timeout_s: float = 30.0) -> str:
+        """Call the node's ~/save_map; its answer (where the files went)."""
+        from std_srvs.srv import Trigger
+        client = self.node.create_client(Trigger, f'/{NODE_NAME}/save_map')
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise NodeProcessError(f'~/save_map did not appear ({self.node_log})')
+        for _ in range(3):  # the first answer can be lost while the reply path is matched
+            future = client.call_async(Trigger.Request())
+            if self.spin_until(future.done, 10.0):
+                response = future.result()
+                if not response.success:
+                    raise NodeProcessError(f'~/save_map failed: {response.message}')
+                return response.message
+        raise NodeProcessError(f'~/save_map did not answer ({self.node_log})')
+
     def close(self) -> None:
         """Stop the feeder node and the node process."""
         stop_feeder(self.context, self.node, self.executor)
@@ -213,12 +230,15 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                         progress: Callable[[int, int], None] | None = None,
                         node_exe: str | None = None, scan_timeout_s: float = 20.0,
                         env: dict[str, str] | None = None,
-                        log_path: str | Path | None = None) -> ReplayResult:
-    """Feed the bag to a separate `filter_odom_node` process and record what it publishes."""
+                        log_path: str | Path | None = None,
+                        save_map_dir: str | Path | None = None) -> ReplayResult:
+    """Feed the bag to a separate `filter_odom_node` process and record what it publishes;
+    `save_map_dir`: at the end, the node's ~/save_map writes its map there."""
     exe = find_node_executable(node_exe)
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
     proc, work, node_log, domain_id = _launch_node(
-        exe, config, topic, dict(os.environ if env is None else env), log_path)
+        exe, config, topic, dict(os.environ if env is None else env), log_path, save_map_dir)
+    saved = None
     feeder = _Feeder(proc, node_log, domain_id, topic)
     stamps, latency, points_in, statuses = [], [], [], []
     failed = True
@@ -250,6 +270,8 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             feeder.spin_until(lambda: bool(feeder.last_path)
                               and len(feeder.last_path[0].poses) >= path_length, 3.0)
             skipped = getattr(reader, 'skipped', 0)
+        if save_map_dir is not None and stamps:
+            saved = feeder.save_map()
         failed = not stamps
     finally:
         feeder.close()
@@ -259,8 +281,11 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     if not stamps:
         raise NodeProcessError(f'filter_odom_node answered none of the {len(statuses)} scans '
                                f'sent; its log: {node_log}')
-    return _replay_result(config, feeder, stamps, latency, points_in, statuses, skipped,
-                          ground_truth, gt_path, node_log if log_path else None)
+    replay = _replay_result(config, feeder, stamps, latency, points_in, statuses, skipped,
+                            ground_truth, gt_path, node_log if log_path else None)
+    if saved is not None:
+        replay.metrics['saved_map'] = saved
+    return replay
 
 
 def _replay_result(config, feeder: _Feeder, stamps, latency, points_in, statuses, skipped,

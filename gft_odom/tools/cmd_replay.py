@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         'it over DDS (with /clock) instead of in-process')
     p.add_argument('--node-exe', help='path of filter_odom_node for --through-node '
                    '(default: <prefix>/lib/gft_odom/filter_odom_node from AMENT_PREFIX_PATH)')
+    p.add_argument('--save-map', nargs='?', const='', metavar='DIR',
+                   help='write the final map (binary PCD with per-point frequency) and the '
+                        "trajectory (TUM), odom frame, as the node's ~/save_map does, into "
+                        'DIR (default: <out>/map)')
     add_switches(p)
 
 
@@ -45,6 +49,9 @@ def run(args: argparse.Namespace) -> int:
     if args.no_filter:
         overrides.append('pipeline.use_spectral_filter=false')
     config = load_config(args.config, overrides)
+    save_map = args.save_map
+    if save_map is not None:
+        save_map = Path(save_map or Path(args.out) / 'map')
     if args.through_node:
         from gft_odom.ros.through_node import replay_through_node
         replay_fn = replay_through_node
@@ -53,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
         extra = {'node_exe': args.node_exe, 'log_path': Path(args.out) / 'node.log'}
     else:
         replay_fn, extra = run_replay, {}
+    if save_map is not None:
+        extra['save_map_dir'] = save_map
     with progress_bar(None, 'replay', enabled=not args.quiet) as update:
         replay = replay_fn(args.bags, config, gt_path=args.gt, topic=args.topic,
                            max_scans=args.max_scans, progress=update, **extra)

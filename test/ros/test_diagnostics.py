@@ -47,3 +47,33 @@ def test_old_problems_leave_the_window():
 def test_no_scans_is_a_warning():
     from gft_odom.ros.diagnostics import WARN
     assert _assess({'processed': 5}, {'processed': 5}).level == WARN
+
+
+def test_a_weak_direction_below_the_threshold_warns_and_names_it():
+    import numpy as np
+
+    from gft_odom.core.degeneracy import weakest_translation
+    from gft_odom.ros.diagnostics import OK, WARN, OdometryDiagnostics
+    open_ground = weakest_translation(np.diag([2.0, 3.0, 2000.0, 50.0, 50.0, 50.0]))
+    row = weakest_translation(np.diag([600.0, 1000.0, 2000.0, 50.0, 50.0, 50.0]))
+    diag = OdometryDiagnostics(window_s=10.0)
+    diag.assess(0.0, {'processed': 10}, [0.03], 0.1)
+    warn = diag.assess(5.0, {'processed': 60}, [0.03], 0.1, weak=open_ground,
+                       weak_warn_ratio=0.02)
+    assert warn.level == WARN and 'weak: translation along x in the base frame' in warn.message
+    assert warn.values['weakest_direction'] == 'translation along x'
+    assert float(warn.values['weakest_direction_ratio']) == pytest.approx(0.001)
+    ok = diag.assess(6.0, {'processed': 70}, [0.03], 0.1, weak=row, weak_warn_ratio=0.02)
+    assert ok.level == OK and ok.values['weakest_direction'] == 'translation along x'
+    never = diag.assess(7.0, {'processed': 80}, [0.03], 0.1, weak=open_ground,
+                        weak_warn_ratio=0.0)
+    assert never.level == OK
+
+
+def test_the_motion_bounds_message_is_a_warning():
+    from gft_odom.ros.diagnostics import WARN, OdometryDiagnostics
+    diag = OdometryDiagnostics(window_s=10.0)
+    diag.assess(0.0, {'processed': 10}, [0.03], 0.1)
+    line = 'motion bounds: ... raise registration.max_speed_mps'
+    result = diag.assess(5.0, {'processed': 60}, [0.03], 0.1, bounds_message=line)
+    assert result.level == WARN and line in result.message

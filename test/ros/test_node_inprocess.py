@@ -203,3 +203,97 @@ def test_default_node_publishes_every_point_with_its_frequency_and_band(make_nod
         expected = spectral.scan_frequencies(cropped)
         np.testing.assert_array_equal(fields['band'], expected.band.astype(np.uint8))
         assert len(np.unique(fields['band'])) >= 4  # the bands are used, not one
+
+
+def test_odometry_carries_the_body_twist_and_a_fallback_says_it_knows_none(make_node, scans):
+    """The simulated drive goes ~1 m/s straight along the row (base_link x)."""
+    from gft_odom.ros.conversions import odometry_twist
+    node = make_node()
+    odom = Recorder()
+    node.odom_pub = odom
+    for msg in scans[:6]:
+        node._on_cloud(msg)
+    first = odom.sent[0]
+    np.testing.assert_array_equal(odometry_twist(first), np.zeros(6))
+    reg = node.config.registration
+    np.testing.assert_allclose(np.diag(np.reshape(first.twist.covariance, (6, 6))),
+                               [reg.max_speed_mps ** 2] * 3 + [reg.max_yaw_rate_rps ** 2] * 3)
+    moving = [odometry_twist(m) for m in odom.sent[2:]]
+    # One match's noise is a few cm over 0.1 s: tenths of a m/s per scan (test/core/test_twist).
+    assert 0.8 < np.mean([t[0] for t in moving]) < 1.2
+    for twist, msg in zip(moving, odom.sent[2:]):
+        assert 0.3 < twist[0] < 1.8 and abs(twist[1]) < 0.6 and abs(twist[5]) < 0.2
+        cov = np.reshape(msg.twist.covariance, (6, 6))
+        assert 0.0 < cov[0, 0] < 0.5 and 0.0 < cov[5, 5] < 0.05  # far below the unknown's
+        np.testing.assert_allclose(cov, cov.T)
+    assert msg.child_frame_id == node.config.node.base_frame
+
+
+def test_save_map_writes_the_map_and_trajectory_and_says_where(make_node, scans, tmp_path):
+    from std_srvs.srv import Trigger
+
+    from gft_odom.io.pcd import read_pcd
+    from gft_odom.io.tum import read_tum
+    from gft_odom.ros.conversions import odometry_to_pose
+    node = make_node(**{'node.save_map_dir': str(tmp_path / 'maps')})
+    odom = Recorder()
+    node.odom_pub = odom
+    for msg in scans[:4]:
+        node._on_cloud(msg)
+    response = node._on_save_map(Trigger.Request(), Trigger.Response())
+    assert response.success, response.message
+    (folder,) = (tmp_path / 'maps').iterdir()
+    assert str(folder / 'map.pcd') in response.message
+    cloud = read_pcd(folder / 'map.pcd')
+    assert cloud.shape[0] == len(node.pipeline.registration.local_map) > 1000
+    assert np.isfinite(cloud['frequency']).mean() > 0.3
+    trajectory = read_tum(folder / 'trajectory_tum.txt')
+    np.testing.assert_allclose(trajectory.poses, [odometry_to_pose(m) for m in odom.sent],
+                               atol=1e-6)
+    node._on_reset(Trigger.Request(), Trigger.Response())
+    assert len(node.trajectory()) == 0
+
+
+def test_save_map_into_a_folder_it_cannot_create_fails_with_the_reason(make_node, scans,
+                                                                       tmp_path):
+    from std_srvs.srv import Trigger
+    blocker = tmp_path / 'file'
+    blocker.write_text('not a folder')
+    node = make_node(**{'node.save_map_dir': str(blocker)})
+    node._on_cloud(scans[0])
+    response = node._on_save_map(Trigger.Request(), Trigger.Response())
+    assert not response.success and 'map not saved' in response.message
+
+
+def test_diagnostics_name_the_weakest_direction_in_base_axes(make_node, scans):
+    node = make_node()
+    diagnostics = Recorder()
+    node.diagnostics_pub = diagnostics
+    for msg in scans[:4]:
+        node._on_cloud(msg)
+    node._publish_diagnostics()
+    values = {kv.key: kv.value for kv in diagnostics.sent[-1].status[0].values}
+    # Along the row: the direction of travel is the least constrained, well above the WARN.
+    assert values['weakest_direction'] == 'translation along x'
+    assert float(values['weakest_direction_ratio']) > node.config.node.weak_direction_warn_ratio
+
+
+def test_adaptive_reliability_follows_rosbag2():
+    from rclpy.qos import ReliabilityPolicy
+
+    from gft_odom.ros.node import adaptive_reliability
+    reliable, best_effort = ReliabilityPolicy.RELIABLE, ReliabilityPolicy.BEST_EFFORT
+    assert adaptive_reliability([]) is None
+    assert adaptive_reliability([reliable, reliable]) == reliable
+    assert adaptive_reliability([reliable, best_effort]) == best_effort
+
+
+def test_input_reliability_is_checked_and_read_at_start_up_only(make_node):
+    from rclpy.parameter import Parameter
+    with pytest.raises(ConfigError, match='input_reliability must be one of'):
+        make_node(**{'node.input_reliability': 'sometimes'})
+    node = make_node(**{'node.input_reliability': 'reliable'})
+    from rclpy.qos import ReliabilityPolicy
+    assert node.input_reliability == ReliabilityPolicy.RELIABLE
+    result = node.set_parameters([Parameter('node.input_reliability', value='best_effort')])[0]
+    assert not result.successful
