@@ -142,6 +142,59 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajector
     return save_figure(fig, path)
 
 
+def plot_trajectories(path: str | Path, reference: Trajectory,
+                      estimates: list[tuple[str, Trajectory]], title: str = '',
+                      margin_m: float = 3.0, error_floor_m: float = 1e-3) -> Path:
+    """Several estimates against one reference: the top view, each estimate rigidly aligned on
+    positions as the ATE aligns it, and beside it each one's position error along the
+    reference's path (log scale: centimetres and metres share the axis). The view is the
+    reference plus a margin (a lost run must not shrink the others; its legend entry says it
+    leaves the view); the first estimate is drawn on top."""
+    from gft_odom.core.metrics import ate
+
+    plt = pyplot()
+    fig, (ax, ax_err) = plt.subplots(1, 2, figsize=(13, 5.5),
+                                     gridspec_kw={'width_ratios': [1.1, 1.0]})
+    ref_xy = reference.positions_xyz[:, :2]
+    lo, hi = path_window(ref_xy, max(margin_m, 0.1 * float(np.ptp(ref_xy, axis=0).max())))
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(
+        np.diff(reference.positions_xyz, axis=0), axis=1))])
+    ax.plot(*ref_xy.T, 'k--', lw=1.2, label='ground truth (GPS antenna)', zorder=10)
+    colours = ('tab:red', 'tab:blue', 'tab:green', 'tab:orange', 'tab:purple', 'tab:brown')
+    for k, (label, estimate) in enumerate(estimates):
+        result = ate(estimate, reference, mode='position')
+        T = result.T_ref_est
+        xy = (estimate.positions_xyz @ T[:3, :3].T + T[:3, 3])[:, :2]
+        colour, width, z = colours[k % len(colours)], 2.0 if k == 0 else 1.2, 9 - k
+        # Distance along the reference at each matched estimate stamp.
+        at = np.interp(estimate.stamps_ns[result.est_idx].astype(float),
+                       reference.stamps_ns.astype(float), travelled)
+        ax_err.plot(at, np.maximum(result.errors_m, error_floor_m), color=colour, lw=width,
+                    label=f'{label}: mean {result.mean_m:.2f} m', zorder=z)
+        if not ((xy >= lo) & (xy <= hi)).all():
+            label += ' (leaves the view)'
+        ax.plot(*xy.T, color=colour, lw=width, label=label, zorder=z)
+    ax.plot(*ref_xy[0], 'ko', ms=5)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_title('top view, aligned on positions')
+    ax.set_xlabel('x [m]')
+    ax.set_ylabel('y [m]')
+    ax.set_aspect('equal', adjustable='box')
+    ax.grid(alpha=0.3)
+    ax.legend(loc='best', fontsize=8)
+    ax_err.set_yscale('log')
+    ax_err.set_title('position error after the alignment')
+    ax_err.set_xlabel('distance along the ground truth [m]')
+    ax_err.set_ylabel('position error [m] (log)')
+    ax_err.grid(alpha=0.3, which='both')
+    ax_err.legend(loc='upper center', bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def plot_map(path: str | Path, points_world: np.ndarray, nu: np.ndarray | None,
              trajectory: Trajectory | None = None, max_points: int = 300_000,
              margin_m: float = PATH_MARGIN_M) -> Path:
