@@ -143,7 +143,7 @@ def frequency_figure(bag_path: Path, gt_sensor_path: Path, config, out: Path,
              f'(every {every}th) of the demo drive, SYNTHETIC orchard')
     if s.method == 'ldos_mean':  # what this nu means (measured in docs/method.md)
         title += ('\nhigh nu: smooth ring lines (ground, trunks, posts); low nu: porous canopy '
-                  "and far returns (the reverse of the paper's direction)")
+                  "and far returns\n(the reverse of the paper's direction, docs/method.md)")
     near = near_path(points, positions, 20.0)
     draw(points[near], nu[near], positions, out, title)
     has = np.isfinite(nu)
