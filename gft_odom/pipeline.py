@@ -258,7 +258,7 @@ class OdometryPipeline:
             reg = self.registration.advance_with_prediction(scan.stamp_ns, DEGENERATE_STATUS)
         else:
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
-                                             kept.time_offset_s)
+                                             kept.time_offset_s, nu=nu)
         t3 = time.perf_counter()
         # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map.
         if self.use_filter and not reg.status.startswith('fallback'):

@@ -12,6 +12,9 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from gft_odom.core.gauss_newton import MapTarget
+from gft_odom.core.residuals import smoothness_from_covariances
+
 # Which keyframe a full map drops: the oldest (a sliding window in time) or the one farthest
 # from the newest keyframe (a window in space: revisited places keep their old keyframes).
 KEYFRAME_EVICTIONS = ('oldest', 'farthest')
@@ -66,8 +69,12 @@ class LocalMap:
             raise ValueError(f'voxel_keeps must be one of {VOXEL_KEEPS}, got {voxel_keeps!r}')
         self.voxel_keeps = voxel_keeps
         self.max_keyframes = max_keyframes
+        # Set (surface variation of a rough neighbourhood) when a model reads the map's
+        # planarity: the served target then carries a smoothness per map point.
+        self.smoothness_variation: float | None = None
         self._keyframes: list[tuple[np.ndarray, np.ndarray]] = []
         self.cloud = o3d.geometry.PointCloud()
+        self._target: MapTarget | None = None
 
     def __len__(self) -> int:
         return len(self.cloud.points)
@@ -76,6 +83,21 @@ class LocalMap:
         """Drop every keyframe."""
         self._keyframes.clear()
         self.cloud = o3d.geometry.PointCloud()
+        self._target = None
+
+    def target(self) -> MapTarget:
+        """The map as the Gauss-Newton solver's target (KD-tree built once per rebuild)."""
+        if self._target is None:
+            smoothness = None
+            if self.smoothness_variation is not None:
+                cloud = o3d.geometry.PointCloud(self.cloud.points)
+                cloud.estimate_covariances(
+                    o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours))
+                smoothness = smoothness_from_covariances(np.asarray(cloud.covariances),
+                                                         self.smoothness_variation)
+            self._target = MapTarget(np.asarray(self.cloud.points),
+                                     np.asarray(self.cloud.normals), smoothness)
+        return self._target
 
     @property
     def points_xyz(self) -> np.ndarray:
@@ -127,3 +149,4 @@ class LocalMap:
             if self.with_covariances:
                 cloud.estimate_covariances(search)
         self.cloud = cloud
+        self._target = None

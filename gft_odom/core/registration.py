@@ -47,6 +47,7 @@ from gft_odom.core.deskew import (
     planar_delta,
     twist_from_delta,
 )
+from gft_odom.core.gauss_newton import GaussNewtonICP, IcpResult
 from gft_odom.core.geometry import invert_transform, make_transform, transform_points
 from gft_odom.core.local_map import (
     KEYFRAME_EVICTIONS,
@@ -54,6 +55,12 @@ from gft_odom.core.local_map import (
     LocalMap,
     to_cloud,
     voxel_downsample_indices,
+)
+from gft_odom.core.residuals import (
+    RESIDUAL_MODELS,
+    ROUGH_RESIDUALS,
+    make_residual_model,
+    smoothness_from_nu,
 )
 from gft_odom.errors import ConfigError, RegistrationError
 
@@ -66,6 +73,7 @@ MODES = ('default', 'paper')
 MAP_POINTS_FROM = ('registration', 'scan')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
+SOLVERS = ('open3d', 'gauss_newton')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
             'fallback_diverged', 'fallback_implausible', 'fallback_degenerate')
@@ -161,6 +169,25 @@ class RegistrationConfig:
     # Re-acquisition runs a coarse ICP with the correspondence distance widened by this
     # factor from each guess, then the normal ICP; the best plausible fit wins.
     recovery_correspondence_factor: float = 3.0
+    # The solver of default mode: 'open3d' (its ICP: one residual type for every pair) or
+    # 'gauss_newton' (core/gauss_newton.py: a residual type and weight per pair, set by
+    # residual_model). Paper mode always uses open3d's point-to-point ICP.
+    solver: str = 'open3d'
+    # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
+    # 'frequency' (the scan point's graph frequency decides: smooth -> plane, rough -> the
+    # rough residual), 'planarity' (the map neighbourhood's covariance decides, GenZ-ICP-style).
+    residual_model: str = 'plane'
+    # What rough points contribute: 'beam_perpendicular' (point-to-point across the beam
+    # only: canopy returns sit at random depths along it) or 'point' (GenZ-ICP's).
+    rough_residual: str = 'beam_perpendicular'
+    rough_weight: float = 1.0
+    # 'frequency': smoothness = nu / smooth_nu clipped to [0, 1] (ground and trunks ~0.5,
+    # canopy ~0 on the scan-line graph).
+    smooth_nu: float = 0.4
+    # 'planarity': smoothness = 1 - surface variation / this (a plane 0, a blob 1/3).
+    rough_surface_variation: float = 0.1
+    # Gauss-Newton stops when the update's norm (m, rad) falls below this.
+    convergence_m: float = 1e-4
     # Motion compensation (default mode only). Off by default: on the simulated orchard drives
     # at ~1 m/s it did not improve accuracy (scans distorted alike match a map of scans
     # distorted alike; a velocity from ICP adds noise). It helps after sudden starts/turns.
@@ -196,6 +223,20 @@ class RegistrationConfig:
         if self.map_points_from not in MAP_POINTS_FROM:
             raise ConfigError(f'map_points_from must be one of {MAP_POINTS_FROM}, '
                               f'got {self.map_points_from!r}')
+        if self.solver not in SOLVERS:
+            raise ConfigError(f'solver must be one of {SOLVERS}, got {self.solver!r}')
+        if self.residual_model not in RESIDUAL_MODELS:
+            raise ConfigError(f'residual_model must be one of {RESIDUAL_MODELS}, '
+                              f'got {self.residual_model!r}')
+        if self.rough_residual not in ROUGH_RESIDUALS:
+            raise ConfigError(f'rough_residual must be one of {ROUGH_RESIDUALS}, '
+                              f'got {self.rough_residual!r}')
+        if self.residual_model != 'plane' and self.solver != 'gauss_newton':
+            raise ConfigError(f"residual_model {self.residual_model!r} needs solver "
+                              f"'gauss_newton' (open3d's ICP has one residual type)")
+        if not (math.isfinite(self.rough_weight) and self.rough_weight >= 0.0):
+            raise ConfigError(f'rough_weight must be a finite number >= 0, '
+                              f'got {self.rough_weight}')
         if self.robust_kernel not in ROBUST_KERNELS:
             raise ConfigError(
                 f'robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}')
@@ -204,7 +245,8 @@ class RegistrationConfig:
                     'keyframe_distance_m', 'keyframe_rotation_rad', 'max_translation_jump_m',
                     'max_rotation_jump_rad', 'scan_period_s', 'convergence_relative',
                     'min_std_m', 'min_std_rad', 'fallback_std_m', 'fallback_std_rad',
-                    'max_speed_mps', 'max_yaw_rate_rps', 'max_gap_s')
+                    'max_speed_mps', 'max_yaw_rate_rps', 'max_gap_s', 'smooth_nu',
+                    'rough_surface_variation', 'convergence_m')
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
@@ -339,6 +381,19 @@ class ScanRegistration:
         self.local_map = local_map_from_config(config)
         self.local_map.with_normals = self.estimation == 'point_to_plane'
         self.local_map.with_covariances = self.estimation == 'gicp'
+        # Gauss-Newton (default mode): per-pair residual types and weights.
+        self.solver = None
+        if config.solver == 'gauss_newton' and config.mode == 'default':
+            self.solver = GaussNewtonICP(
+                make_residual_model(config.residual_model, config.rough_residual,
+                                    config.rough_weight),
+                config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
+                config.convergence_m)
+            self.local_map.with_normals = True
+            if config.residual_model == 'planarity':
+                self.local_map.smoothness_variation = config.rough_surface_variation
+        # Smoothness of this scan's downsampled points (residual_model 'frequency').
+        self._source_smoothness: np.ndarray | None = None
         self.deskew = config.deskew and config.mode == 'default'
         self.min_var = np.array([config.min_std_m ** 2] * 3 + [config.min_std_rad ** 2] * 3)
         self.fallback_var = np.array(
@@ -461,9 +516,13 @@ class ScanRegistration:
         return self._finish(stamp_ns, dt_s, status, T_pred, 0, t_start, {})
 
     def register(self, points_xyz: np.ndarray, stamp_ns: int,
-                 time_offset_s: np.ndarray | None = None) -> RegistrationResult:
-        """Register one scan (sensor frame, any number of points) and update the state."""
-        points_xyz, time_offset_s = self._check_input(points_xyz, time_offset_s)
+                 time_offset_s: np.ndarray | None = None,
+                 nu: np.ndarray | None = None) -> RegistrationResult:
+        """Register one scan (sensor frame, any number of points) and update the state.
+
+        `nu` (N,): every point's graph frequency (NaN: none), read by residual_model
+        'frequency'; without it every pair is weighted alike."""
+        points_xyz, time_offset_s, nu = self._check_input(points_xyz, time_offset_s, nu)
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
 
@@ -474,6 +533,9 @@ class ScanRegistration:
         t0 = time.perf_counter()
         keep = voxel_downsample_indices(points_xyz, self.config.voxel_size_m)
         source_xyz = points_xyz[keep]
+        self._source_smoothness = (
+            smoothness_from_nu(nu[keep], self.config.smooth_nu)
+            if nu is not None and self.config.residual_model == 'frequency' else None)
         timings['downsample'] = time.perf_counter() - t0
         t0 = time.perf_counter()
         offsets_s = None
@@ -597,10 +659,15 @@ class ScanRegistration:
         motion = delta_of_twist(np.mean(twists[-window:], axis=0), dt_s)
         return planar_delta(motion) if self.config.deskew_planar else motion
 
-    def _check_input(self, points_xyz, time_offset_s):
+    def _check_input(self, points_xyz, time_offset_s, nu=None):
         points = np.asarray(points_xyz, dtype=float)
         if points.ndim != 2 or points.shape[1] != 3:
             raise RegistrationError(f'points_xyz must have shape (N, 3), got {points.shape}')
+        if nu is not None:
+            nu = np.asarray(nu, dtype=float).reshape(-1)
+            if nu.shape[0] != points.shape[0]:
+                raise RegistrationError(f'nu has {nu.shape[0]} values for {points.shape[0]} '
+                                        'points')
         if time_offset_s is not None:
             time_offset_s = np.asarray(time_offset_s, dtype=float).reshape(-1)
             if time_offset_s.shape[0] != points.shape[0]:
@@ -613,7 +680,8 @@ class ScanRegistration:
         if not finite.all():
             points = points[finite]
             time_offset_s = None if time_offset_s is None else time_offset_s[finite]
-        return points, time_offset_s
+            nu = None if nu is None else nu[finite]
+        return points, time_offset_s, nu
 
     def _time_offsets(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None):
         if time_offset_s is not None:
@@ -721,6 +789,10 @@ class ScanRegistration:
 
     def _icp(self, source, target, init, distance_m: float, criteria=None):
         criteria = self.criteria if criteria is None else criteria
+        if self.solver is not None and target is self.local_map.cloud:
+            return self.solver.register(np.asarray(source.points), self.local_map.target(),
+                                        init, distance_m, self._source_smoothness,
+                                        criteria.max_iteration)
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
                 self.config.gicp_epsilon, self.kernel)
@@ -742,6 +814,8 @@ class ScanRegistration:
         directions (ground only: x, y, yaw) as small information, hence large variances.
         Point-to-point rows are [I, -[a]x].
         """
+        if isinstance(result, IcpResult):  # Gauss-Newton: its own weighted normal matrix
+            return result.information
         pairs = np.asarray(result.correspondence_set)
         if pairs.shape[0] < 6:
             return None

@@ -216,6 +216,12 @@ def test_default_config_is_valid_and_from_config_builds():
     ('max_consecutive_fallbacks', 0, 'max_consecutive_fallbacks'),
     ('recovery_correspondence_factor', 0.5, 'recovery_correspondence_factor'),
     ('min_relative_fitness', 1.5, 'min_relative_fitness'),
+    ('solver', 'ceres', 'solver'),
+    ('residual_model', 'volume', 'residual_model'),
+    ('residual_model', 'frequency', "needs solver 'gauss_newton'"),
+    ('rough_residual', 'along', 'rough_residual'),
+    ('rough_weight', -1.0, 'rough_weight'),
+    ('smooth_nu', 0.0, 'smooth_nu'),
 ])
 def test_invalid_config_names_the_field(field, value, message):
     cfg = dataclasses.replace(RegistrationConfig(), **{field: value})
@@ -656,3 +662,39 @@ def test_a_retry_passes_the_checks_a_match_does(static_pair):
     reg = registration(max_translation_jump_m=0.1, retry_failed_match=True)
     reg.register(a['points'], a['stamp_ns'])
     assert reg.register(b['points'], b['stamp_ns']).status == 'fallback_diverged'
+
+
+# ---------------------------------------------------------------- Gauss-Newton, frequency-aware
+
+GAUSS_NEWTON = dict(solver='gauss_newton', convergence_m=5e-4)
+
+
+@pytest.mark.parametrize('model', ['plane', 'frequency', 'planarity'])
+def test_gauss_newton_tracks_the_drive_like_open3d(drive, model):
+    errors, statuses = _run(registration(residual_model=model, **GAUSS_NEWTON), drive)
+    reference, _ = _run(registration(), drive)
+    assert statuses.count('ok') >= len(drive) - 2
+    assert errors[-1, 0] < max(2.0 * reference[-1, 0], 0.05), (errors[-1], reference[-1])
+
+
+def test_the_frequency_steers_the_gauss_newton_registration(static_pair):
+    """Same scans, same registration: smoothness from nu changes the estimate and its
+    information (with nu = NaN everywhere, every pair is rough: no plane row at all)."""
+    a, b, _ = static_pair
+    results = {}
+    for name, nu in (('none', None), ('smooth', np.full(len(b['points']), 0.5)),
+                     ('rough', np.full(len(b['points']), np.nan))):
+        reg = registration(residual_model='frequency', **GAUSS_NEWTON)
+        reg.register(a['points'], a['stamp_ns'])
+        results[name] = reg.register(b['points'], b['stamp_ns'], nu=nu)
+    # All smooth (s = 1) is exactly the plane model, i.e. no frequency.
+    np.testing.assert_allclose(results['smooth'].T_world_sensor,
+                               results['none'].T_world_sensor, atol=1e-12)
+    assert not np.allclose(results['rough'].information, results['none'].information)
+    assert results['rough'].status == 'ok'
+
+
+def test_nu_must_match_the_points():
+    reg = registration(residual_model='frequency', **GAUSS_NEWTON)
+    with pytest.raises(RegistrationError, match='nu has 2 values'):
+        reg.register(np.zeros((3, 3)), 0, nu=np.zeros(2))

@@ -43,6 +43,7 @@ from gft_odom.core.spectral.frequency import (
     make_definition,
 )
 from gft_odom.core.spectral.graph import (
+    SCAN_LINE_WEIGHTS,
     GraphLaplacian,
     ScanLineLaplacian,
     components,
@@ -94,6 +95,17 @@ class SpectralConfig:
     # canopy; on training seeds 0.05 m gave 0.53 bits about the surface with no band over 36 %
     # of the points, 0.1 m 0.56 bits but up to 68 % in one band (docs/method.md).
     scan_line_sigma_m: float = 0.05
+    # How scan-line edges are weighed: 'distance' (Gaussian of the 3-D step, width
+    # scan_line_sigma_m: nu falls with range) or 'range_slope' (Gaussian of the range slope
+    # along the ring, width scan_line_slope_sigma, cut at an azimuth gap of
+    # scan_line_max_gap_rad, the step floored by scan_line_noise_m: range-invariant).
+    # graph.scan_line_graph has the definitions. On training seed 111 (lawnmower, varied),
+    # 'range_slope' with sigma 2, floor 5 cm carried 0.71-0.72 bits about the surface class
+    # (0.55-0.69 within range deciles) against 0.60-0.62 (0.49-0.62) for 'distance'.
+    scan_line_weight: str = 'distance'
+    scan_line_slope_sigma: float = 2.0
+    scan_line_max_gap_rad: float = 0.02
+    scan_line_noise_m: float = 0.05
     n_bands: int = 10
     # Default all-pass: the tuned mask is chosen later by the band search.
     band_mask: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
@@ -145,6 +157,7 @@ class SpectralConfig:
                 raise ConfigError(f'spectral.{name} must be a finite number > 0, got {value!r}')
 
         for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m',
+                     'scan_line_slope_sigma', 'scan_line_max_gap_rad', 'scan_line_noise_m',
                      'local_map_keyframe_distance_m',
                      'local_map_voxel_m', 'local_map_max_distance_m'):
             positive(name)
@@ -156,6 +169,7 @@ class SpectralConfig:
         BandMask.parse(tuple(self.band_mask), self.n_bands)
         for name, allowed in (('method', tuple(sorted(REGISTRY))), ('solver', SOLVERS),
                               ('graph', GRAPHS), ('frequency_source', FREQUENCY_SOURCES),
+                              ('scan_line_weight', SCAN_LINE_WEIGHTS),
                               ('band_assignment', BAND_ASSIGNMENTS),
                               ('centring', CENTRINGS),
                               ('lambda_max_method', LAMBDA_MAX_METHODS)):
@@ -336,7 +350,11 @@ class SpectralFilter:
             coords = points if index is None else points[index]
             ring_f = np.asarray(ring) if index is None else np.asarray(ring)[index]
             L, order = scan_line_graph(coords, ring_f, self.config.tau_m,
-                                       self.config.scan_line_sigma_m)
+                                       self.config.scan_line_sigma_m,
+                                       self.config.scan_line_weight,
+                                       self.config.scan_line_slope_sigma,
+                                       self.config.scan_line_max_gap_rad,
+                                       self.config.scan_line_noise_m)
             if index is not None:
                 order = index[order]
             sl = Slices(order=order, starts=np.array([0, order.size], dtype=np.int64),

@@ -83,3 +83,39 @@ def test_voxelise_merges_close_points_within_one_slice_only():
     np.testing.assert_array_equal(node_slice, [0, 1, 1])
     same = voxelise(xy, s, 2, 0.0)
     np.testing.assert_array_equal(same[3], np.arange(4))
+
+
+def ring_points(azimuth_rad: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """One horizontal ring (elevation 0) of returns at the given azimuths and ranges."""
+    return np.c_[range_m * np.cos(azimuth_rad), range_m * np.sin(azimuth_rad),
+                 np.zeros(azimuth_rad.size)]
+
+
+def test_range_slope_weights_do_not_fall_with_range_but_distance_weights_do():
+    from gft_odom.core.spectral.graph import scan_line_graph
+    azimuth = np.deg2rad(np.arange(-10.0, 10.0, 0.2))
+    ring = np.zeros(azimuth.size, dtype=np.uint16)
+    weights = {}
+    for kind in ('distance', 'range_slope'):
+        for r in (5.0, 30.0):
+            # A wall perpendicular to the middle beam: range r / cos(azimuth).
+            L, _ = scan_line_graph(ring_points(azimuth, r / np.cos(azimuth)), ring, 0.2, 0.05,
+                                   weight=kind)
+            weights[kind, r] = np.median(L.w_next)
+    assert weights['range_slope', 30.0] > 0.9 and weights['range_slope', 5.0] > 0.9
+    assert weights['distance', 30.0] < 0.5 * weights['distance', 5.0]
+
+
+def test_range_slope_weights_separate_porous_returns_from_a_surface():
+    from gft_odom.core.spectral.graph import scan_line_graph
+    rng = np.random.default_rng(0)
+    azimuth = np.deg2rad(np.arange(-10.0, 10.0, 0.2))
+    ring = np.zeros(azimuth.size, dtype=np.uint16)
+    canopy = 8.0 + rng.uniform(0.0, 0.6, azimuth.size)  # returns at random depths
+    wall = 8.0 / np.cos(azimuth) + rng.normal(0.0, 0.03, azimuth.size)  # 3 cm range noise
+    L, _ = scan_line_graph(ring_points(azimuth, canopy), ring, 0.2, 0.05, weight='range_slope')
+    L_wall, _ = scan_line_graph(ring_points(azimuth, wall), ring, 0.2, 0.05,
+                                weight='range_slope')
+    assert np.median(L.w_next) < 0.4 < 0.8 < np.median(L_wall.w_next)
+    with pytest.raises(SpectralError, match='weight'):
+        scan_line_graph(ring_points(azimuth, canopy), ring, 0.2, 0.05, weight='angle')

@@ -1,0 +1,173 @@
+"""Gauss-Newton ICP with per-correspondence residual types and weights.
+
+open3d's ICP gives every correspondence the same residual and a kernel weight only; the
+frequency-aware registration needs a residual type and a weight per pair
+(`gft_odom.core.residuals`), so the solver is written here, in numpy: nearest neighbours from
+a scipy KD-tree of the map (built once per map rebuild), rows from the residual model, a robust
+kernel per residual, a 6x6 solve, repeat until the update is below `convergence_m`.
+
+The KD-tree is asked for the `CANDIDATES` nearest map points of every scan point once, and
+again only when the estimate has moved a typical scan point (at the median range) by more
+than `REQUERY_M` since: in
+between, each iteration picks the nearest of those candidates (a few vector operations
+instead of a tree search; the map holds one point per 0.3 m voxel, so the true nearest point
+of a point moved by a few cm is among its 4 nearest before the move).
+
+The perturbation is (translation, rotation about the sensor position) in world axes, so the
+final normal matrix is the information of the pose in the same axes `ScanRegistration`
+reports its covariance in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from gft_odom.core.residuals import Correspondences
+
+KERNELS = ('none', 'tukey', 'huber', 'cauchy')
+CANDIDATES = 4
+REQUERY_M = 0.05
+
+
+@dataclass
+class MapTarget:
+    """What the solver matches against: map points, their normals, optional smoothness."""
+
+    points: np.ndarray  # (n, 3) world
+    normals: np.ndarray  # (n, 3) unit
+    smoothness: np.ndarray | None = None  # (n,) in [0, 1], for map-side models
+    tree: cKDTree | None = None
+
+    def __post_init__(self) -> None:
+        self.squared_norms = np.einsum('ij,ij->i', self.points, self.points)
+        if self.tree is None:
+            self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+
+
+@dataclass
+class IcpResult:
+    """The open3d RegistrationResult's fields the registration reads, plus the information."""
+
+    transformation: np.ndarray  # (4, 4) T_world_sensor
+    fitness: float  # pairs within the correspondence distance / source points
+    inlier_rmse: float  # RMS point distance of those pairs
+    correspondence_set: np.ndarray  # (m, 2) source index, target index
+    information: np.ndarray | None  # (6, 6) J^T W J / rmse^2 at the solution
+    n_iterations: int
+
+
+def kernel_weights(kind: str, e: np.ndarray, scale: float) -> np.ndarray:
+    """IRLS weight of residual norms `e` (the same kernels open3d offers)."""
+    if kind == 'tukey':
+        u = e / scale
+        return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+    if kind == 'huber':
+        return np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12))
+    if kind == 'cauchy':
+        return 1.0 / (1.0 + (e / scale) ** 2)
+    return np.ones_like(e)
+
+
+class GaussNewtonICP:
+    """Point cloud to map registration; the residual model decides each pair's rows."""
+
+    def __init__(self, residual_model, kernel: str = 'tukey', kernel_scale_m: float = 0.3,
+                 max_iterations: int = 30, convergence_m: float = 1e-4) -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f'kernel must be one of {KERNELS}, got {kernel!r}')
+        self.model = residual_model
+        self.kernel = kernel
+        self.kernel_scale_m = kernel_scale_m
+        self.max_iterations = max_iterations
+        self.convergence_m = convergence_m
+
+    def register(self, source_xyz: np.ndarray, target: MapTarget, init: np.ndarray,
+                 max_distance_m: float, source_smoothness: np.ndarray | None = None,
+                 max_iterations: int | None = None) -> IcpResult:
+        """Align `source_xyz` (sensor frame) to `target` starting at `init` (T_world_sensor).
+
+        `source_smoothness` (n,) in [0, 1] per source point, for frequency-aware models; a
+        model reading the map's smoothness takes it from `target.smoothness`."""
+        T = np.array(init, dtype=float)
+        n = source_xyz.shape[0]
+        iterations = self.max_iterations if max_iterations is None else max_iterations
+        reach_m = float(np.sqrt(np.median(np.einsum('ij,ij->i', source_xyz, source_xyz)))
+                        ) if n else 0.0
+        self._candidates = None
+        used = 0
+        for used in range(1, iterations + 1):
+            pairs, c = self._correspond(source_xyz, target, T, max_distance_m,
+                                        source_smoothness)
+            if pairs.shape[0] < 6:
+                return IcpResult(T, pairs.shape[0] / max(n, 1), 0.0, pairs, None, used)
+            H, g = self._normal_equations(c)
+            try:
+                dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+            except np.linalg.LinAlgError:
+                break
+            if not np.all(np.isfinite(dx)):
+                T = np.full((4, 4), np.nan)
+                break
+            T = apply_update(T, dx)
+            # How far a typical scan point moved: the translation plus the rotation's arc at
+            # the median range (the few far points may pick a near-nearest candidate meanwhile).
+            self._moved_m += np.linalg.norm(dx[:3]) + np.linalg.norm(dx[3:]) * reach_m
+            if np.linalg.norm(dx) < self.convergence_m:
+                break
+        pairs, c = self._correspond(source_xyz, target, T, max_distance_m, source_smoothness)
+        m = pairs.shape[0]
+        if m == 0 or not np.all(np.isfinite(T)):
+            return IcpResult(T, m / max(n, 1), 0.0, pairs, None, used)
+        distance = np.linalg.norm(c.source_world - c.target, axis=1)
+        rmse = float(np.sqrt(np.mean(distance ** 2)))
+        information = None
+        if m >= 6:
+            H, _ = self._normal_equations(c)
+            information = H / max(rmse, 1e-3) ** 2
+        return IcpResult(T, m / max(n, 1), rmse, pairs, information, used)
+
+    def _correspond(self, source_xyz, target: MapTarget, T, max_distance_m, smoothness):
+        world = source_xyz @ T[:3, :3].T + T[:3, 3]
+        if self._candidates is None or self._moved_m > REQUERY_M:
+            _, index = target.tree.query(world, k=CANDIDATES,
+                                         distance_upper_bound=max_distance_m + REQUERY_M)
+            self._candidates = np.minimum(index, target.points.shape[0] - 1)
+            self._candidate_found = index < target.points.shape[0]
+            self._moved_m = 0.0
+        # |q - p|^2 = |q|^2 - 2 q.p + |p|^2 without an (n, k, 3) difference array.
+        dot = np.einsum('nkj,nj->nk', target.points[self._candidates], world)
+        d2 = target.squared_norms[self._candidates] - 2.0 * dot + np.einsum(
+            'ij,ij->i', world, world)[:, None]
+        d2 = np.where(self._candidate_found, d2, np.inf)
+        best = np.argmin(d2, axis=1)
+        rows = np.arange(world.shape[0])
+        valid = np.flatnonzero(d2[rows, best] <= max_distance_m * max_distance_m)
+        tgt = self._candidates[valid, best[valid]]
+        s = None
+        if smoothness is not None:
+            s = smoothness[valid]
+        elif target.smoothness is not None:
+            s = target.smoothness[tgt]
+        c = Correspondences(world[valid], world[valid] - T[:3, 3], target.points[tgt],
+                            target.normals[tgt], s)
+        return np.column_stack([valid, tgt]), c
+
+    def _normal_equations(self, c: Correspondences) -> tuple[np.ndarray, np.ndarray]:
+        J, r, w, group = self.model.linearise(c)
+        e = np.sqrt(np.bincount(group, weights=r * r))
+        w = w * kernel_weights(self.kernel, e, self.kernel_scale_m)[group]
+        Jw = J * w[:, None]
+        return Jw.T @ J, Jw.T @ r
+
+
+def apply_update(T: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """T moved by dx = (translation, rotation about T's origin), world axes."""
+    out = np.eye(4)
+    R = Rotation.from_rotvec(dx[3:]).as_matrix()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + dx[:3]
+    return out

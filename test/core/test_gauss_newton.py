@@ -1,0 +1,112 @@
+"""Gauss-Newton ICP: known transforms, agreement with open3d, weak directions, kernels."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gft_odom.core.gauss_newton import GaussNewtonICP, MapTarget, apply_update, kernel_weights
+from gft_odom.core.geometry import invert_transform, make_transform
+from gft_odom.core.residuals import PlaneResidual, SmoothnessResidual
+
+
+def box_scene(seed: int = 0, corridor: bool = False) -> np.ndarray:
+    """Points on a ground plane, two long walls along x and (unless `corridor`) posts."""
+    rng = np.random.default_rng(seed)
+    ground = np.c_[rng.uniform(-15, 15, (4000, 2)), np.zeros(4000)]
+    walls = []
+    for y in (-4.0, 4.0):
+        walls.append(np.c_[rng.uniform(-15, 15, 1500), np.full(1500, y),
+                           rng.uniform(0.0, 3.0, 1500)])
+    parts = [ground] + walls
+    if not corridor:
+        for px, py in ((-6.0, 2.0), (3.0, -2.5), (9.0, 1.0), (-1.0, -1.5)):
+            angle = rng.uniform(0, 2 * np.pi, 400)
+            parts.append(np.c_[px + 0.3 * np.cos(angle), py + 0.3 * np.sin(angle),
+                               rng.uniform(0.0, 2.5, 400)])
+    return np.concatenate(parts)
+
+
+def target_of(points: np.ndarray) -> MapTarget:
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(15))
+    return MapTarget(points, np.asarray(cloud.normals))
+
+
+@pytest.fixture(scope='module')
+def scene():
+    return box_scene()
+
+
+T_TRUE = make_transform(Rotation.from_euler('z', 4.0, degrees=True).as_matrix(),
+                        [0.3, -0.15, 0.02])
+
+
+def test_update_moves_about_the_sensor_origin():
+    T = make_transform(np.eye(3), [5.0, 0.0, 0.0])
+    moved = apply_update(T, np.r_[0.0, 0.0, 0.0, 0.0, 0.0, np.pi / 2])
+    np.testing.assert_allclose(moved[:3, 3], [5.0, 0.0, 0.0])  # rotation about itself
+    np.testing.assert_allclose(moved[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize('model', [PlaneResidual(),
+                                   SmoothnessResidual('frequency', 'beam_perpendicular')])
+def test_recovers_a_known_transform(scene, model):
+    source = (invert_transform(T_TRUE)[:3, :3] @ scene.T).T + invert_transform(T_TRUE)[:3, 3]
+    source += np.random.default_rng(1).normal(0.0, 0.01, source.shape)
+    smooth = np.random.default_rng(2).uniform(0.0, 1.0, source.shape[0])
+    solver = GaussNewtonICP(model, 'tukey', 0.3, max_iterations=50)
+    result = solver.register(source, target_of(scene), np.eye(4), 1.0, smooth)
+    error = invert_transform(T_TRUE) @ result.transformation
+    assert np.linalg.norm(error[:3, 3]) < 0.01
+    assert Rotation.from_matrix(error[:3, :3]).magnitude() < np.deg2rad(0.05)
+    assert result.fitness > 0.95 and result.inlier_rmse < 0.1
+    assert result.n_iterations < 50
+    assert np.all(np.linalg.eigvalsh(result.information) > 0.0)
+
+
+def test_agrees_with_open3d_point_to_plane(scene):
+    source = (invert_transform(T_TRUE)[:3, :3] @ scene.T).T + invert_transform(T_TRUE)[:3, 3]
+    source = source[::3] + np.random.default_rng(3).normal(0.0, 0.02, source[::3].shape)
+    target = target_of(scene)
+    ours = GaussNewtonICP(PlaneResidual(), 'tukey', 0.3, 50, 1e-6).register(
+        source, target, np.eye(4), 1.0)
+    reg = o3d.pipelines.registration
+    cloud_t = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target.points))
+    cloud_t.normals = o3d.utility.Vector3dVector(target.normals)
+    theirs = reg.registration_icp(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source)), cloud_t, 1.0, np.eye(4),
+        reg.TransformationEstimationPointToPlane(reg.TukeyLoss(0.3)),
+        reg.ICPConvergenceCriteria(1e-9, 1e-9, 50))
+    diff = invert_transform(np.asarray(theirs.transformation)) @ ours.transformation
+    assert np.linalg.norm(diff[:3, 3]) < 0.005
+    assert abs(ours.fitness - theirs.fitness) < 0.01
+
+
+def test_a_corridor_leaves_the_along_axis_weak():
+    corridor = box_scene(corridor=True)
+    solver = GaussNewtonICP(PlaneResidual(), 'tukey', 0.3)
+    result = solver.register(corridor[::2], target_of(corridor), np.eye(4), 1.0)
+    translation = result.information[:3, :3]
+    values, vectors = np.linalg.eigh(translation)
+    weakest = vectors[:, 0]
+    assert abs(weakest[0]) > 0.99  # along the walls (x)
+    assert values[0] < 0.02 * values[1]
+
+
+def test_kernels_down_weight_large_residuals():
+    e = np.array([0.0, 0.1, 0.3, 1.0])
+    tukey = kernel_weights('tukey', e, 0.3)
+    assert tukey[0] == 1.0 and tukey[2] == 0.0 and tukey[3] == 0.0 and 0 < tukey[1] < 1
+    for kind in ('huber', 'cauchy'):
+        w = kernel_weights(kind, e, 0.3)
+        assert np.all(np.diff(w) <= 0.0) and w[0] == 1.0
+    np.testing.assert_array_equal(kernel_weights('none', e, 0.3), 1.0)
+
+
+def test_too_few_pairs_returns_no_information(scene):
+    far = scene[:50] + 100.0
+    result = GaussNewtonICP(PlaneResidual()).register(far, target_of(scene), np.eye(4), 1.0)
+    assert result.fitness == 0.0 and result.information is None

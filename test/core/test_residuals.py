@@ -1,0 +1,115 @@
+"""Residual-and-weight models: rows, weights, groups, and the smoothness sources."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gft_odom.core.residuals import (
+    Correspondences,
+    PlaneResidual,
+    SmoothnessResidual,
+    make_residual_model,
+    smoothness_from_covariances,
+    smoothness_from_nu,
+)
+from gft_odom.errors import ConfigError
+
+
+def pairs(m: int = 20, seed: int = 0, smoothness=None) -> Correspondences:
+    rng = np.random.default_rng(seed)
+    lever = rng.normal(0.0, 5.0, (m, 3))
+    sensor = np.array([10.0, -3.0, 0.5])
+    normal = rng.normal(size=(m, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    target = sensor + lever + rng.normal(0.0, 0.05, (m, 3))
+    return Correspondences(sensor + lever, lever, target, normal, smoothness)
+
+
+def numeric_jacobian(c: Correspondences, rows) -> np.ndarray:
+    """d r / d (translation, rotation about the sensor) by central differences."""
+    from scipy.spatial.transform import Rotation
+    sensor = c.source_world - c.lever
+    cols = []
+    for k in range(6):
+        out = []
+        for sign in (1.0, -1.0):
+            dx = np.zeros(6)
+            dx[k] = sign * 1e-6
+            R = Rotation.from_rotvec(dx[3:]).as_matrix()
+            lever = c.lever @ R.T
+            moved = Correspondences(sensor + lever + dx[:3], lever, c.target, c.normal,
+                                    c.smoothness)
+            out.append(rows(moved)[1])
+        cols.append((out[0] - out[1]) / 2e-6)
+    return np.column_stack(cols)
+
+
+def test_plane_rows_have_the_analytic_jacobian():
+    c = pairs()
+    J, r, w, group = PlaneResidual().linearise(c)
+    np.testing.assert_allclose(J, numeric_jacobian(c, PlaneResidual().linearise), atol=1e-5)
+    np.testing.assert_allclose(r, np.einsum('ij,ij->i', c.normal, c.source_world - c.target))
+    assert np.all(w == 1.0) and np.array_equal(group, np.arange(20))
+
+
+def test_rough_rows_have_the_analytic_jacobian_and_ignore_the_beam():
+    c = pairs(smoothness=np.zeros(20))
+    model = SmoothnessResidual('frequency', 'beam_perpendicular')
+    J, r, w, group = model.linearise(c)
+    # Gauss-Newton holds the projection fixed: exact where the residual vanishes.
+    at_zero = Correspondences(c.source_world, c.lever, c.source_world.copy(), c.normal,
+                              c.smoothness)
+    np.testing.assert_allclose(J, numeric_jacobian(at_zero, model.linearise), atol=1e-5)
+    # A move along each pair's own beam changes none of its rough residuals.
+    rough = J[20:].reshape(20, 3, 6)
+    beam = c.lever / np.linalg.norm(c.lever, axis=1, keepdims=True)
+    along = np.einsum('nij,nj->ni', rough[:, :, :3], beam)
+    np.testing.assert_allclose(along, 0.0, atol=1e-12)
+    # Plane rows weigh s = 0, rough rows 1 - s = 1; groups: i for planes, m + i for rough.
+    np.testing.assert_allclose(w[:20], 0.0)
+    np.testing.assert_allclose(w[20:], 1.0)
+    np.testing.assert_array_equal(group[20:], 20 + np.repeat(np.arange(20), 3))
+
+
+def test_full_point_rows_constrain_every_direction():
+    c = pairs(smoothness=np.zeros(20))
+    J, _, _, _ = SmoothnessResidual('planarity', 'point').linearise(c)
+    np.testing.assert_allclose(J[20:23, :3], np.eye(3))
+
+
+def test_without_smoothness_the_model_is_the_plane_model():
+    c = pairs()
+    plain = PlaneResidual().linearise(c)
+    same = SmoothnessResidual('frequency').linearise(c)
+    for a, b in zip(plain, same):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_smooth_pairs_get_no_rough_rows_and_weights_follow_smoothness():
+    s = np.linspace(0.0, 1.0, 20)
+    J, r, w, group = SmoothnessResidual('frequency', rough_weight=0.5).linearise(
+        pairs(smoothness=s))
+    n_rough = int(np.sum(s < 1.0))
+    assert J.shape[0] == 20 + 3 * n_rough
+    np.testing.assert_allclose(w[:20], s)
+    np.testing.assert_allclose(w[20:], np.repeat(0.5 * (1.0 - s[s < 1.0]), 3))
+
+
+def test_smoothness_from_nu_is_clipped_and_nan_is_rough():
+    s = smoothness_from_nu(np.array([np.nan, 0.0, 0.2, 0.4, 0.6]), 0.4)
+    np.testing.assert_allclose(s, [0.0, 0.0, 0.5, 1.0, 1.0])
+
+
+def test_smoothness_from_covariances_tells_a_plane_from_a_blob():
+    plane = np.diag([1.0, 1.0, 1e-6])
+    blob = np.eye(3)
+    s = smoothness_from_covariances(np.stack([plane, blob]), 0.1)
+    assert s[0] > 0.99 and s[1] == 0.0
+
+
+def test_unknown_models_are_refused():
+    with pytest.raises(ConfigError, match='residual model'):
+        make_residual_model('volume')
+    with pytest.raises(ConfigError, match='rough residual'):
+        make_residual_model('frequency', 'along_beam')
