@@ -2,11 +2,14 @@
 
 Like a velodyne driver on the same host: every 0.1 s one ~29 k-point cloud (a simulated row
 drive played forward and back) stamped with the wall clock is published on `/velodyne_points`
-with best-effort (sensor-data) or reliable QoS; the colcon-built filter_odom_node runs with
-`config/filter_odom.yaml`. Counts the scans answered on `~/odometry` and the publish ->
-odometry latency. Writes benchmarks/results/realtime_node_<reliability>.json.
+with best-effort (sensor-data) or reliable QoS (the stock ROS 2 velodyne driver's
+`rclcpp::QoS(10)`); the colcon-built filter_odom_node runs with `config/filter_odom.yaml`
+(input QoS `node.input_reliability: auto`: it subscribes as the publisher is). Counts the scans
+answered on `~/odometry`, the publish -> odometry latency and the input QoS the node chose.
+Writes benchmarks/results/realtime_node_<reliability>_<driver profile>.json.
 
-    .venv/bin/python benchmarks/realtime_node.py --seconds 90 --reliability best_effort
+    .venv/bin/python benchmarks/realtime_node.py --seconds 30 --reliability reliable \
+        --driver-profile default
 """
 
 from __future__ import annotations
@@ -126,6 +129,7 @@ def main(argv=None) -> int:
     ok = np.isfinite(latency_ms)
     log_text = node_log.read_text()
     final = re.search(r'final counts: (.*)', log_text)
+    input_qos = re.findall(r'input \S+: (.*)', log_text)
     figures = {
         'seconds': args.seconds, 'rate_hz': args.rate_hz, 'reliability': args.reliability,
         'driver_profile': args.driver_profile,
@@ -136,6 +140,7 @@ def main(argv=None) -> int:
         'latency_median_ms': float(np.median(latency_ms[ok])) if ok.any() else None,
         'latency_p95_ms': float(np.percentile(latency_ms[ok], 95)) if ok.any() else None,
         'node_final_counts': final.group(1) if final else None,
+        'node_input_qos': input_qos,
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -297,3 +297,31 @@ def test_input_reliability_is_checked_and_read_at_start_up_only(make_node):
     assert node.input_reliability == ReliabilityPolicy.RELIABLE
     result = node.set_parameters([Parameter('node.input_reliability', value='best_effort')])[0]
     assert not result.successful
+
+
+@pytest.mark.slow
+def test_a_platform_faster_than_the_bound_is_told_in_the_log_and_diagnostics(make_node,
+                                                                             monkeypatch):
+    """A simulated row drive at 4 m/s against the default 2 m/s bound."""
+    from gft_odom.io.pointcloud2 import encode_scan
+    from gft_odom.ros.conversions import blob_to_msg
+    from gft_odom.ros.diagnostics import WARN
+    from gft_odom.sim.simulator import ScanSimulator, SimConfig
+    node = make_node()
+    logged = []
+    monkeypatch.setattr(node._log_handler, '_ros_logger',
+                        type('L', (), {'warning': lambda self, t: logged.append(t),
+                                       'info': lambda self, t: None,
+                                       'debug': lambda self, t: None})())
+    diagnostics = Recorder()
+    node.diagnostics_pub = diagnostics
+    sim = ScanSimulator.from_config(SimConfig(azimuth_step_deg=0.4, speed_mps=4.0), 'row', 16,
+                                    5)
+    for i in range(16):
+        scan = sim.scan(i).scan
+        node._on_cloud(blob_to_msg(encode_scan(scan), scan.stamp_ns, 'velodyne'))
+    told = [t for t in logged if 'registration.max_speed_mps' in t]
+    assert len(told) == 1 and 'm/s' in told[0]
+    node._publish_diagnostics()
+    status = diagnostics.sent[-1].status[0]
+    assert status.level == WARN and 'registration.max_speed_mps = 2' in status.message
