@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from gft_odom.config import GftOdomConfig, with_values
+from gft_odom.io.pcd import read_pcd
+from gft_odom.io.tum import read_tum
 from gft_odom.params_file import load_config, packaged_params_file, write_params_file
 from gft_odom.replay import run_replay
 from gft_odom.ros.through_node import replay_through_node
@@ -125,9 +127,15 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
     monkeypatch.setattr(tempfile, 'tempdir', str(temp))
     assert main(['replay', str(orchard_bag.bag_path), '--gt', str(orchard_bag.gt_csv_path),
                  '--out', str(out), '--through-node', '--max-scans', '5', '--quiet',
-                 '--config', str(packaged_params_file('paper_mode_gft.yaml'))]) == 0
+                 '--config', str(packaged_params_file('paper_mode_gft.yaml')),
+                 '--save-map']) == 0
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['n_scans'] == 5 and metrics['ate_rmse_m'] is not None
+    # The node's ~/save_map wrote its map (paper mode: the last trusted scan) under <out>/map.
+    (saved,) = (out / 'map').iterdir()
+    assert str(saved / 'map.pcd') in metrics['saved_map']
+    assert read_pcd(saved / 'map.pcd').shape[0] > 300
+    assert len(read_tum(saved / 'trajectory_tum.txt')) == 5
     poses = [line for line in (out / 'trajectory_tum.txt').read_text().splitlines()
              if not line.startswith('#')]
     assert len(poses) == 5
