@@ -202,6 +202,9 @@ class FilterOdomNode(Node):
             self._create_input(policy, how)
             return
         self._check_input_qos()
+        if self.input_sub is None:
+            self.get_logger().info(f'input {self.input_topic}: no publisher yet; subscribing '
+                                   'as the first one is (node.input_reliability: auto)')
         self.create_timer(INPUT_QOS_CHECK_S, self._check_input_qos, clock=steady)
 
     def _check_input_qos(self) -> None:
