@@ -36,6 +36,9 @@ class PipelineConfig:
     # A VLP-16 sweep has ~29 k points; a bigger cloud (another sensor, a driver glitch) is
     # thinned by a regular stride to this many so one scan cannot stall the node for seconds.
     max_points_per_scan: int = 120000
+    # A control for ablations only: each scan's frequencies are permuted among its points
+    # before registration (their distribution kept, what they tell about each point lost).
+    shuffle_frequencies: bool = False
 
     def validate(self) -> None:
         """Raise ConfigError naming the first value that cannot work."""

@@ -258,7 +258,8 @@ class OdometryPipeline:
             reg = self.registration.advance_with_prediction(scan.stamp_ns, DEGENERATE_STATUS)
         else:
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
-                                             kept.time_offset_s, nu=nu)
+                                             kept.time_offset_s, nu=self._registration_nu(
+                                                 nu, scan.stamp_ns))
         t3 = time.perf_counter()
         # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map.
         if self.use_filter and not reg.status.startswith('fallback'):
@@ -277,6 +278,13 @@ class OdometryPipeline:
             twist=reg.twist, information=reg.information,
             timings_s={'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
                        'pipeline': t4 - t0})
+
+    def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
+        """The frequencies registration sees: the scan's, or (the ablation control
+        `pipeline.shuffle_frequencies`) the same values permuted, seeded by the stamp."""
+        if nu is None or not self.config.pipeline.shuffle_frequencies:
+            return nu
+        return np.random.default_rng(int(stamp_ns) % (1 << 32)).permutation(nu)
 
     def _rejected(self, scan: Scan, rejection: Rejection) -> FrameResult:
         T_world_sensor = self.registration.T_world_sensor.copy()

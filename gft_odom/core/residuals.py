@@ -8,11 +8,11 @@ A scan point matched to a map point can constrain the pose in three ways:
   it can say where the foliage is across the beam but not along it;
 - point-to-point, `r = p - q`: GenZ-ICP's residual where the map is not planar.
 
-A model turns the m correspondences into Gauss-Newton rows `(J, r, w, group)` with `J` (k, 6)
-over the perturbation (translation, rotation about the sensor), `w` the model's weight of each
-row and `group` the residual a row belongs to: i for pair i's plane row, m + i for its rough
-rows (the robust kernel weighs each residual by its norm, not each row). Each model is one
-class; `make_residual_model` picks one by name.
+A model says, per correspondence, which residual types apply and with what weight (`terms`:
+a list of `Term`s); `normal_equations` turns a term into its Gauss-Newton contribution over
+the perturbation (translation, rotation about the sensor), the robust kernel weighing each
+residual by its norm. A new weighting is one model class; a new residual type is one more
+branch of `normal_equations`. `linearise` spells the same terms out as explicit rows.
 
 Smoothness s in [0, 1] (1 = a surface with a real normal) comes from the scan point's graph
 frequency (`frequency`), or from the map neighbourhood's covariance (`planarity`, the
@@ -72,16 +72,65 @@ def point_rows(c: Correspondences, beam_perpendicular: bool) -> tuple[np.ndarray
     return J.reshape(3 * m, 6), r.reshape(3 * m)
 
 
+@dataclass
+class Term:
+    """One residual type over a subset of the pairs: `kind` from RESIDUAL_KINDS, `index` (k,)
+    the pairs it covers, `weight` (k,) the model's weight of each."""
+
+    kind: str
+    index: np.ndarray
+    weight: np.ndarray
+
+
+# The residual types a model can assign; `normal_equations` has each one's closed form.
+RESIDUAL_KINDS = ('plane', 'beam_perpendicular', 'point')
+
+
+def normal_equations(c: Correspondences, term: Term, kernel) -> tuple[np.ndarray, np.ndarray]:
+    """(H, g) = sum of w J^T J, w J^T r over the term's pairs, with w = the model's weight
+    times `kernel(residual norm)`; in closed form for the point types (no 3-row blocks).
+
+    Beam-perpendicular rows are `[P, -[a]x]`: the lever a is the beam, so P [a]x = [a]x."""
+    i, w = term.index, term.weight
+    a = c.lever[i]
+    e = c.source_world[i] - c.target[i]
+    if term.kind == 'plane':
+        n = c.normal[i]
+        J = np.hstack([n, np.cross(a, n)])
+        r = np.einsum('ij,ij->i', n, e)
+        w = w * kernel(np.abs(r))
+        Jw = J * w[:, None]
+        return Jw.T @ J, Jw.T @ r
+    if term.kind not in ('beam_perpendicular', 'point'):
+        raise ConfigError(f'residual kind must be one of {RESIDUAL_KINDS}, got {term.kind!r}')
+    H = np.zeros((6, 6))
+    if term.kind == 'beam_perpendicular':
+        b = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+        r = e - b * np.einsum('ij,ij->i', b, e)[:, None]
+        w = w * kernel(np.linalg.norm(r, axis=1))
+        H[:3, :3] = w.sum() * np.eye(3) - (b * w[:, None]).T @ b
+    else:
+        r = e
+        w = w * kernel(np.linalg.norm(r, axis=1))
+        H[:3, :3] = w.sum() * np.eye(3)
+    wa = a * w[:, None]
+    sa = wa.sum(axis=0)
+    H[:3, 3:] = -skew_rows(sa[None])[0]
+    H[3:, :3] = H[:3, 3:].T
+    H[3:, 3:] = np.einsum('ij,ij->', wa, a) * np.eye(3) - wa.T @ a
+    g = np.r_[(r * w[:, None]).sum(axis=0), np.cross(wa, r).sum(axis=0)]
+    return H, g
+
+
 class PlaneResidual:
     """Every correspondence a point-to-plane row of weight 1 (kiss-icp-like, open3d's)."""
 
     name = 'plane'
 
-    def linearise(self, c: Correspondences):
-        """(J, r, w, group) of every correspondence."""
-        J, r = plane_rows(c)
-        m = r.shape[0]
-        return J, r, np.ones(m), np.arange(m)
+    def terms(self, c: Correspondences) -> list[Term]:
+        """One plane term over every pair."""
+        m = c.lever.shape[0]
+        return [Term('plane', np.arange(m), np.ones(m))]
 
 
 class SmoothnessResidual:
@@ -97,25 +146,42 @@ class SmoothnessResidual:
             raise ConfigError(f'rough residual must be one of {ROUGH_RESIDUALS}, '
                               f'got {rough_residual!r}')
         self.name = name
-        self.beam_perpendicular = rough_residual == 'beam_perpendicular'
+        self.rough_residual = rough_residual
         self.rough_weight = float(rough_weight)
 
-    def linearise(self, c: Correspondences):
-        """(J, r, w, group): one plane row per pair, three rough rows where s < 1."""
-        Jp, rp = plane_rows(c)
-        m = rp.shape[0]
+    def terms(self, c: Correspondences) -> list[Term]:
+        """A plane term weighted s over every pair, a rough term weighted 1 - s where s < 1."""
+        m = c.lever.shape[0]
         if c.smoothness is None:
-            return Jp, rp, np.ones(m), np.arange(m)
+            return [Term('plane', np.arange(m), np.ones(m))]
         s = np.clip(np.nan_to_num(c.smoothness, nan=0.0), 0.0, 1.0)
+        out = [Term('plane', np.arange(m), s)]
         rough = np.flatnonzero(s < 1.0)
-        if rough.size == 0 or self.rough_weight == 0.0:
-            return Jp, rp, s, np.arange(m)
-        sub = Correspondences(c.source_world[rough], c.lever[rough], c.target[rough],
-                              c.normal[rough], None)
-        Jr, rr = point_rows(sub, self.beam_perpendicular)
-        wr = np.repeat(self.rough_weight * (1.0 - s[rough]), 3)
-        return (np.vstack([Jp, Jr]), np.concatenate([rp, rr]), np.concatenate([s, wr]),
-                np.concatenate([np.arange(m), m + np.repeat(rough, 3)]))
+        if rough.size and self.rough_weight > 0.0:
+            out.append(Term(self.rough_residual, rough, self.rough_weight * (1.0 - s[rough])))
+        return out
+
+
+def linearise(model, c: Correspondences):
+    """The model's terms as explicit Gauss-Newton rows (J, r, w, group): for tests and
+    inspection; the solver uses `normal_equations`. Group i is pair i's plane row, m + i its
+    rough rows."""
+    m = c.lever.shape[0]
+    Js, rs, ws, groups = [], [], [], []
+    for term in model.terms(c):
+        sub = Correspondences(c.source_world[term.index], c.lever[term.index],
+                              c.target[term.index], c.normal[term.index], None)
+        if term.kind == 'plane':
+            J, r = plane_rows(sub)
+            w, group = term.weight, term.index
+        else:
+            J, r = point_rows(sub, term.kind == 'beam_perpendicular')
+            w, group = np.repeat(term.weight, 3), m + np.repeat(term.index, 3)
+        Js.append(J)
+        rs.append(r)
+        ws.append(w)
+        groups.append(group)
+    return np.vstack(Js), np.concatenate(rs), np.concatenate(ws), np.concatenate(groups)
 
 
 def make_residual_model(name: str, rough_residual: str = 'beam_perpendicular',

@@ -9,7 +9,10 @@ from gft_odom.core.residuals import (
     Correspondences,
     PlaneResidual,
     SmoothnessResidual,
+    Term,
+    linearise,
     make_residual_model,
+    normal_equations,
     smoothness_from_covariances,
     smoothness_from_nu,
 )
@@ -47,8 +50,9 @@ def numeric_jacobian(c: Correspondences, rows) -> np.ndarray:
 
 def test_plane_rows_have_the_analytic_jacobian():
     c = pairs()
-    J, r, w, group = PlaneResidual().linearise(c)
-    np.testing.assert_allclose(J, numeric_jacobian(c, PlaneResidual().linearise), atol=1e-5)
+    rows = lambda c: linearise(PlaneResidual(), c)  # noqa: E731
+    J, r, w, group = rows(c)
+    np.testing.assert_allclose(J, numeric_jacobian(c, rows), atol=1e-5)
     np.testing.assert_allclose(r, np.einsum('ij,ij->i', c.normal, c.source_world - c.target))
     assert np.all(w == 1.0) and np.array_equal(group, np.arange(20))
 
@@ -56,11 +60,12 @@ def test_plane_rows_have_the_analytic_jacobian():
 def test_rough_rows_have_the_analytic_jacobian_and_ignore_the_beam():
     c = pairs(smoothness=np.zeros(20))
     model = SmoothnessResidual('frequency', 'beam_perpendicular')
-    J, r, w, group = model.linearise(c)
+    rows = lambda c: linearise(model, c)  # noqa: E731
+    J, r, w, group = rows(c)
     # Gauss-Newton holds the projection fixed: exact where the residual vanishes.
     at_zero = Correspondences(c.source_world, c.lever, c.source_world.copy(), c.normal,
                               c.smoothness)
-    np.testing.assert_allclose(J, numeric_jacobian(at_zero, model.linearise), atol=1e-5)
+    np.testing.assert_allclose(J, numeric_jacobian(at_zero, rows), atol=1e-5)
     # A move along each pair's own beam changes none of its rough residuals.
     rough = J[20:].reshape(20, 3, 6)
     beam = c.lever / np.linalg.norm(c.lever, axis=1, keepdims=True)
@@ -74,22 +79,22 @@ def test_rough_rows_have_the_analytic_jacobian_and_ignore_the_beam():
 
 def test_full_point_rows_constrain_every_direction():
     c = pairs(smoothness=np.zeros(20))
-    J, _, _, _ = SmoothnessResidual('planarity', 'point').linearise(c)
+    J, _, _, _ = linearise(SmoothnessResidual('planarity', 'point'), c)
     np.testing.assert_allclose(J[20:23, :3], np.eye(3))
 
 
 def test_without_smoothness_the_model_is_the_plane_model():
     c = pairs()
-    plain = PlaneResidual().linearise(c)
-    same = SmoothnessResidual('frequency').linearise(c)
+    plain = linearise(PlaneResidual(), c)
+    same = linearise(SmoothnessResidual('frequency'), c)
     for a, b in zip(plain, same):
         np.testing.assert_array_equal(a, b)
 
 
 def test_smooth_pairs_get_no_rough_rows_and_weights_follow_smoothness():
     s = np.linspace(0.0, 1.0, 20)
-    J, r, w, group = SmoothnessResidual('frequency', rough_weight=0.5).linearise(
-        pairs(smoothness=s))
+    J, r, w, group = linearise(SmoothnessResidual('frequency', rough_weight=0.5),
+                               pairs(smoothness=s))
     n_rough = int(np.sum(s < 1.0))
     assert J.shape[0] == 20 + 3 * n_rough
     np.testing.assert_allclose(w[:20], s)
@@ -113,3 +118,22 @@ def test_unknown_models_are_refused():
         make_residual_model('volume')
     with pytest.raises(ConfigError, match='rough residual'):
         make_residual_model('frequency', 'along_beam')
+
+
+@pytest.mark.parametrize('kind', ['plane', 'beam_perpendicular', 'point'])
+def test_closed_form_normal_equations_equal_the_explicit_rows(kind):
+    c = pairs(smoothness=np.zeros(20))
+    term = Term(kind, np.arange(3, 17), np.linspace(0.2, 1.0, 14))
+    kernel = lambda e: 1.0 / (1.0 + (e / 0.1) ** 2)  # noqa: E731
+    H, g = normal_equations(c, term, kernel)
+
+    class One:
+        def terms(self, _):
+            return [term]
+    J, r, w, group = linearise(One(), c)
+    norms = np.sqrt(np.bincount(group, weights=r * r))
+    w = w * kernel(norms)[group]
+    np.testing.assert_allclose(H, (J * w[:, None]).T @ J, atol=1e-9)
+    np.testing.assert_allclose(g, (J * w[:, None]).T @ r, atol=1e-9)
+    with pytest.raises(ConfigError, match='residual kind'):
+        normal_equations(c, Term('line', term.index, term.weight), kernel)
