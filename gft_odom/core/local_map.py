@@ -30,15 +30,24 @@ def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
-def voxel_downsample_indices(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
-    """Indices of the first point in each occupied voxel, in input order.
+def voxel_downsample_indices(points_xyz: np.ndarray, voxel_size_m: float,
+                             priority: np.ndarray | None = None) -> np.ndarray:
+    """Indices of one point per occupied voxel, in input order: the first point, or with
+    `priority` (N,) the point of highest priority (the first among equals).
 
-    First point rather than centroid: it keeps a real measurement and its per-point time.
+    A real point rather than a centroid: it keeps a real measurement and its per-point time.
     """
     if points_xyz.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
-    _, first = np.unique(voxel_keys(points_xyz, voxel_size_m), return_index=True)
-    return np.sort(first)
+    keys = voxel_keys(points_xyz, voxel_size_m)
+    if priority is None:
+        _, first = np.unique(keys, return_index=True)
+        return np.sort(first)
+    order = np.lexsort((-np.nan_to_num(np.asarray(priority, dtype=np.float64), nan=-np.inf),
+                        keys))
+    sorted_keys = keys[order]
+    head = np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]
+    return np.sort(order[head])
 
 
 def to_cloud(points_xyz: np.ndarray) -> o3d.geometry.PointCloud:

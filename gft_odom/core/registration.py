@@ -74,6 +74,7 @@ MAP_POINTS_FROM = ('registration', 'scan')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
 SOLVERS = ('open3d', 'gauss_newton')
+VOXEL_PRIORITIES = ('first', 'smoothest')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
             'fallback_diverged', 'fallback_implausible', 'fallback_degenerate')
@@ -186,6 +187,10 @@ class RegistrationConfig:
     smooth_nu: float = 0.4
     # 'planarity': smoothness = 1 - surface variation / this (a plane 0, a blob 1/3).
     rough_surface_variation: float = 0.1
+    # Which point of a source voxel registration uses (and a keyframe adds to the map):
+    # 'first' (in scan order) or 'smoothest' (the highest graph frequency nu: a ground or
+    # trunk return is preferred to a canopy return of the same voxel; needs nu).
+    voxel_priority: str = 'first'
     # Gauss-Newton stops when the update's norm (m, rad) falls below this.
     convergence_m: float = 1e-4
     # Motion compensation (default mode only). Off by default: on the simulated orchard drives
@@ -223,6 +228,9 @@ class RegistrationConfig:
         if self.map_points_from not in MAP_POINTS_FROM:
             raise ConfigError(f'map_points_from must be one of {MAP_POINTS_FROM}, '
                               f'got {self.map_points_from!r}')
+        if self.voxel_priority not in VOXEL_PRIORITIES:
+            raise ConfigError(f'voxel_priority must be one of {VOXEL_PRIORITIES}, '
+                              f'got {self.voxel_priority!r}')
         if self.solver not in SOLVERS:
             raise ConfigError(f'solver must be one of {SOLVERS}, got {self.solver!r}')
         if self.residual_model not in RESIDUAL_MODELS:
@@ -531,7 +539,8 @@ class ScanRegistration:
 
         # 2. Downsample (first point per voxel keeps its time), then deskew those points.
         t0 = time.perf_counter()
-        keep = voxel_downsample_indices(points_xyz, self.config.voxel_size_m)
+        priority = nu if self.config.voxel_priority == 'smoothest' else None
+        keep = voxel_downsample_indices(points_xyz, self.config.voxel_size_m, priority)
         source_xyz = points_xyz[keep]
         self._source_smoothness = (
             smoothness_from_nu(nu[keep], self.config.smooth_nu)

@@ -222,6 +222,7 @@ def test_default_config_is_valid_and_from_config_builds():
     ('rough_residual', 'along', 'rough_residual'),
     ('rough_weight', -1.0, 'rough_weight'),
     ('smooth_nu', 0.0, 'smooth_nu'),
+    ('voxel_priority', 'random', 'voxel_priority'),
 ])
 def test_invalid_config_names_the_field(field, value, message):
     cfg = dataclasses.replace(RegistrationConfig(), **{field: value})
@@ -698,3 +699,26 @@ def test_nu_must_match_the_points():
     reg = registration(residual_model='frequency', **GAUSS_NEWTON)
     with pytest.raises(RegistrationError, match='nu has 2 values'):
         reg.register(np.zeros((3, 3)), 0, nu=np.zeros(2))
+
+
+def test_a_voxel_keeps_its_smoothest_point_when_asked():
+    points = np.array([[0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [1.1, 0.0, 0.0], [0.15, 0.0, 0.0]])
+    np.testing.assert_array_equal(voxel_downsample_indices(points, 1.0), [0, 2])
+    nu = np.array([0.1, np.nan, 0.3, 0.5])  # NaN (no spectrum) never wins over a value
+    np.testing.assert_array_equal(voxel_downsample_indices(points, 1.0, nu), [2, 3])
+    np.testing.assert_array_equal(
+        voxel_downsample_indices(points, 1.0, np.full(4, np.nan)), [0, 2])
+
+
+def test_smoothest_voxel_priority_changes_which_points_register(static_pair):
+    a, b, _ = static_pair
+    rng = np.random.default_rng(0)
+    nu = rng.uniform(0.0, 0.5, len(b['points']))
+    used = {}
+    for priority in ('first', 'smoothest'):
+        reg = registration(voxel_priority=priority)
+        reg.register(a['points'], a['stamp_ns'])
+        result = reg.register(b['points'], b['stamp_ns'], nu=nu)
+        assert result.status == 'ok'
+        used[priority] = result.T_world_sensor
+    assert not np.allclose(used['first'], used['smoothest'], atol=1e-9)
