@@ -21,7 +21,9 @@ KEYFRAME_EVICTIONS = ('oldest', 'farthest')
 # Which point a map voxel seen by several keyframes keeps: the newest keyframe's, or the
 # oldest's (the map then stays anchored to what was seen first, as a voxel map that never
 # replaces a filled voxel).
-VOXEL_KEEPS = ('newest', 'oldest')
+# 'nearest': the point measured from the closest sensor position (the sharpest view of a
+# crown or a trunk; docs/registration.md: the map seen only from behind biases along rows).
+VOXEL_KEEPS = ('newest', 'oldest', 'nearest')
 
 
 def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -125,7 +127,8 @@ class LocalMap:
 
     def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray) -> None:
         """Store a keyframe (world-frame points) and rebuild the served cloud."""
-        keep = voxel_downsample_indices(points_world, self.voxel_size_m)
+        keep = voxel_downsample_indices(points_world, self.voxel_size_m,
+                                        self._view_priority(points_world, T_world_sensor))
         if len(self._keyframes) >= self.max_keyframes:
             if self.eviction == 'farthest':
                 # Keep what is near: a lane driven again, or the next lane over, stays mapped.
@@ -138,14 +141,25 @@ class LocalMap:
         self._keyframes.append((T_world_sensor.copy(), points_world[keep]))
         self._rebuild(T_world_sensor[:3, 3])
 
+    def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
+        """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
+        if self.voxel_keeps != 'nearest':
+            return None
+        offset = points_world - T_world_sensor[:3, 3]
+        return -np.einsum('ij,ij->i', offset, offset)
+
     def _rebuild(self, centre_xyz: np.ndarray) -> None:
         # The first point of a voxel wins: newest keyframe first keeps the freshest point,
-        # oldest first the one seen first.
+        # oldest first the one seen first; 'nearest' the one seen from closest.
         order = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
         merged = np.concatenate([pts for _, pts in order])
+        priority = (np.concatenate([self._view_priority(pts, T) for T, pts in order])
+                    if self.voxel_keeps == 'nearest' else None)
         d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
-        merged = merged[d2 <= self.max_range_m ** 2]
-        merged = merged[voxel_downsample_indices(merged, self.voxel_size_m)]
+        inside = d2 <= self.max_range_m ** 2
+        merged = merged[inside]
+        priority = None if priority is None else priority[inside]
+        merged = merged[voxel_downsample_indices(merged, self.voxel_size_m, priority)]
         if merged.shape[0] > self.max_points:
             # Keep the nearest points: registration is best conditioned close to the sensor.
             d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)

@@ -722,3 +722,15 @@ def test_smoothest_voxel_priority_changes_which_points_register(static_pair):
         assert result.status == 'ok'
         used[priority] = result.T_world_sensor
     assert not np.allclose(used['first'], used['smoothest'], atol=1e-9)
+
+
+def test_a_voxel_keeps_the_point_seen_from_closest_when_asked():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(1.0, 100.0, 10_000, 5, 0.1, 0.2, 5, with_normals=False,
+                         voxel_keeps='nearest')
+    # The same voxel seen from 5 m, then from 1 m, then from 3 m: the 1 m view stays.
+    for sensor_x, point_x in ((-5.0, 0.2), (-1.0, 0.5), (-3.0, 0.8)):
+        T = np.eye(4)
+        T[0, 3] = sensor_x
+        local_map.add_keyframe(np.array([[point_x, 0.5, 0.5]]), T)
+    assert local_map.points_xyz[:, 0].tolist() == [0.5]
