@@ -40,16 +40,45 @@ PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_
 # Before issue 15: a 15-keyframe map.
 ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
                                              ('registration.map_max_points', 40000))
-# Every LiDAR-only pipeline evalio 0.6.1 offers (its KISS-ICP duplicates our kiss-icp row).
+# The defaults before issue 20 (session 5), spelled out so the row keeps its meaning.
+SESSION4_DEFAULTS = (('registration.deskew', False), ('registration.solver', 'open3d'),
+                     ('registration.residual_model', 'plane'),
+                     ('registration.voxel_priority', 'first'),
+                     ('registration.map_voxel_keeps', 'oldest'),
+                     ('spectral.scan_line_weight', 'distance'))
+# Our rows first (the default and its ablations: frequencies off, and shuffled among each
+# scan's points), then every LiDAR-only pipeline evalio 0.6.1 offers, kiss-icp both through
+# its Python API and through evalio.
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
-    Entry('gft_odom, previous defaults', 'default+gft', PREVIOUS_DEFAULTS),
+    Entry('gft_odom, no frequency (--no-filter)', 'default'),
+    Entry('gft_odom, shuffled frequency', 'default+gft',
+          (('pipeline.shuffle_frequencies', True),)),
+    Entry('gft_odom, session-4 default', 'default+gft', SESSION4_DEFAULTS),
     Entry('kiss-icp', 'kiss-icp'),
+    Entry('kiss-icp (evalio)', 'kiss-icp-evalio'),
     Entry('GenZ-ICP', 'genz-icp'),
     Entry('MAD-ICP', 'mad-icp'),
     Entry('CT-ICP', 'ct-icp'),
     Entry('FORM', 'form'),
     Entry('LOAM', 'loam'),
+)
+
+# Issue 20's ablation of the frequency-aware registration (Gauss-Newton solver, per-pair
+# residuals): the frequency as a per-pair weight (rough_weight 0: canopy pairs down-weighted,
+# the best of the 'frequency' variants on training drive every_other_row-113), the same
+# registration without frequencies (--no-filter: every pair a plane of weight 1), the
+# frequencies shuffled among each scan's points (a control that must lose), and the map
+# neighbourhood's planarity in place of the frequency (GenZ-ICP-style point-to-point rows).
+_GN = (('registration.solver', 'gauss_newton'), ('registration.convergence_m', 5e-4),
+       ('registration.residual_model', 'frequency'), ('registration.rough_weight', 0.0))
+ABLATION_ENTRIES = (
+    Entry('GN, frequency as weight', 'default+gft', _GN),
+    Entry('GN, no frequency (--no-filter)', 'default', _GN),
+    Entry('GN, shuffled frequency', 'default+gft',
+          _GN + (('pipeline.shuffle_frequencies', True),)),
+    Entry('GN, map planarity (GenZ-style)', 'default+gft', _GN[:2] + (
+        ('registration.residual_model', 'planarity'), ('registration.rough_residual', 'point'))),
 )
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
@@ -104,10 +133,12 @@ def main(argv=None) -> int:
                    help='report the pairs already measured in the cache, measure nothing')
     p.add_argument('--study', action='store_true',
                    help='the drift-study candidates instead of the record entries')
+    p.add_argument('--ablation', action='store_true',
+                   help="issue 20's frequency ablation instead of the record entries")
     p.add_argument('--out', type=Path, default=RESULTS)
     args = p.parse_args(argv)
     drives = HELD_OUT_DRIVES if args.drives == 'held-out' else TRAINING_DRIVES
-    pool = STUDY_ENTRIES if args.study else ENTRIES
+    pool = STUDY_ENTRIES if args.study else ABLATION_ENTRIES if args.ablation else ENTRIES
     entries = [e for e in pool if args.only is None or e.label in args.only]
     if not entries:
         p.error(f'no entry matches --only {args.only}; labels: {[e.label for e in pool]}')
@@ -122,7 +153,8 @@ def main(argv=None) -> int:
                         cached_only=args.cached_only)
     settings = {'drives': args.drives, 'jobs': args.jobs, 'simulate_s': t_sim,
                 'methods_s': time.perf_counter() - t0 - t_sim, 'machine': machine_info()}
-    stem = f'{"study" if args.study else "record"}_{args.drives}'
+    kind = 'study' if args.study else 'ablation' if args.ablation else 'record'
+    stem = f'{kind}_{args.drives}'
     paths = write_record(record, args.out, settings, stem=stem)
     print(paths['markdown'].read_text())
     return 0

@@ -116,12 +116,14 @@ def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
     """Where one (entry, drive) result is kept: named by label, method, drive and the whole
     config the method runs with, so a changed default is measured again, not reused. (A code
     change that leaves the config alone needs --fresh.)"""
-    # kiss-icp's and the peers' odometry ignores our config (their evaluation and extrinsics
-    # do not): after changing those defaults, measure them again with --fresh.
+    # kiss-icp's and the peers' odometry ignores our config; their scoring does not, so their
+    # key holds the evaluation and ground-truth sections (a changed scoring re-measures them).
     ours = ALL_METHODS[entry.method][1] is not None
-    config = dataclasses.asdict(method_config(entry.config(base), entry.method)) if ours else None
-    key = json.dumps([entry.label, entry.method, list(entry.overrides)] + (
-        [config] if ours else []), sort_keys=True, default=str)
+    config = method_config(entry.config(base), entry.method)
+    keyed = (dataclasses.asdict(config) if ours else
+             [dataclasses.asdict(config.evaluation), dataclasses.asdict(config.ground_truth)])
+    key = json.dumps([entry.label, entry.method, list(entry.overrides), keyed],
+                     sort_keys=True, default=str)
     digest = hashlib.sha1(key.encode()).hexdigest()[:12]
     return Path(cache_dir) / f'{sequence.name}__{digest}.npz'
 
