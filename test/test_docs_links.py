@@ -10,10 +10,10 @@ LINK = re.compile(r'\]\(([^)\s]+)\)')
 
 
 def _pages() -> list[tuple[Path, Path]]:
-    """(page, folder its links are relative to). The README draft is written for the root."""
+    """(page, folder its links are relative to)."""
     pages = [(REPO / 'README.md', REPO)]
     for page in sorted((REPO / 'docs').glob('*.md')):
-        pages.append((page, REPO if page.name == 'README_draft.md' else page.parent))
+        pages.append((page, page.parent))
     return pages
 
 
@@ -27,8 +27,14 @@ def test_relative_links_resolve():
     assert not broken, '\n'.join(broken)
 
 
-def test_the_readme_draft_links_the_pages_the_long_material_moved_to():
-    draft = (REPO / 'docs' / 'README_draft.md').read_text()
+def test_the_readme_links_the_pages_the_long_material_moved_to():
+    readme = (REPO / 'README.md').read_text()
     for page in ('ros_node', 'tools', 'parameters', 'facts', 'layout', 'results_history',
-                 'benchmarks'):
-        assert f'](docs/{page}.md)' in draft, page
+                 'benchmarks', 'registration'):
+        assert f'](docs/{page}.md)' in readme, page
+
+
+def test_the_readme_starts_with_the_two_commands():
+    readme = (REPO / 'README.md').read_text()
+    first_block = readme[readme.index('```bash'):]
+    assert first_block.index('make demo') < first_block.index('make test') < 400
