@@ -75,3 +75,15 @@ def test_a_drive_faster_than_the_bound_is_told(max_speed_mps, told):
     assert message is not None and 'registration.max_speed_mps = 2' in message
     seen_mps = float(message.split('agreeing on ')[1].split(' m/s')[0])
     assert 3.6 <= seen_mps <= 4.4
+
+
+def test_a_few_agreeing_refusals_among_many_good_matches_are_not_told():
+    """The paper's scan-to-scan ICP on a U-turn: 5 wrong matches in 66 scans agreed on 3.3 m/s;
+    a platform beyond the bounds is refused again and again instead."""
+    from gft_odom.core.bounds_watch import BoundsWatch
+    watch = BoundsWatch(2.0, 4.0)
+    for k in range(66):
+        refused = k % 13 == 12  # 5 refusals, all at 3.3 m/s
+        assert watch.observe('fallback_implausible' if refused else 'ok',
+                             3.3 if refused else None, 0.1 if refused else None) is None
+    assert watch.message is None
