@@ -144,9 +144,11 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, reference: Trajector
 
 def plot_trajectories(path: str | Path, reference: Trajectory,
                       estimates: list[tuple[str, Trajectory]], title: str = '',
-                      margin_m: float = 3.0, error_floor_m: float = 1e-3) -> Path:
+                      margin_m: float = 3.0, error_floor_m: float = 1e-3,
+                      match: str = 'auto') -> Path:
     """Several estimates against one reference: the top view, each estimate rigidly aligned on
-    positions as the ATE aligns it, and beside it each one's position error along the
+    positions as the ATE aligns it (`match` as `evaluation.match`), and beside it each one's
+    position error along the
     reference's path (log scale: centimetres and metres share the axis). The view is the
     reference plus a margin (a lost run must not shrink the others; its legend entry says it
     leaves the view); the first estimate is drawn on top."""
@@ -162,7 +164,7 @@ def plot_trajectories(path: str | Path, reference: Trajectory,
     ax.plot(*ref_xy.T, 'k--', lw=1.2, label='ground truth (GPS antenna)', zorder=10)
     colours = ('tab:red', 'tab:blue', 'tab:green', 'tab:orange', 'tab:purple', 'tab:brown')
     for k, (label, estimate) in enumerate(estimates):
-        result = ate(estimate, reference, mode='position')
+        result = ate(estimate, reference, mode='position', match=match)
         T = result.T_ref_est
         xy = (estimate.positions_xyz @ T[:3, :3].T + T[:3, 3])[:, :2]
         colour, width, z = colours[k % len(colours)], 2.0 if k == 0 else 1.2, 9 - k

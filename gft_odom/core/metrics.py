@@ -61,7 +61,7 @@ class MetricsConfig:
     # and so charges v x (stamp difference) along the track (the simulator's GPS runs 37 ms
     # after the scans: 4-7 cm at 1-1.8 m/s, and it favoured poses that lag their stamps, as
     # an undeskewed scan's does). 'auto': interpolate positions, nearest when orientations
-    # are compared (mode 'se3').
+    # are compared (mode 'se3'). (The functions' own default stays 'nearest'.)
     match: str = 'auto'
     # With 'interpolate', no position is invented across a ground-truth gap longer than this.
     max_gap_s: float = DEFAULT_MAX_GAP_S
@@ -184,6 +184,7 @@ class _Matched:
 def _match(est: Trajectory, ref: Trajectory, max_diff_s: float, match: str, max_gap_s: float,
            need_orientation: bool) -> _Matched:
     _check_args(max_diff_s=max_diff_s, match=match, max_gap_s=max_gap_s)
+    at_ends = match == 'auto'
     if match == 'auto':
         match = 'nearest' if need_orientation else 'interpolate'
     if match == 'nearest':
@@ -197,6 +198,14 @@ def _match(est: Trajectory, ref: Trajectory, max_diff_s: float, match: str, max_
                               "(mode='se3', use_orientation=True) need match='nearest'")
         _check_sorted(est, 'estimated')
         p_all = interpolate_positions(ref, est.stamps_ns, max_gap_s)
+        if at_ends and len(ref):
+            # 'auto': a pose just outside the reference's span (within max_diff_s of its first
+            # or last sample) takes that sample, as 'nearest' would.
+            limit_ns = max_diff_s * 1e9
+            for end in (0, len(ref) - 1):
+                near = (~np.isfinite(p_all).all(axis=1)) & (
+                    np.abs(est.stamps_ns - ref.stamps_ns[end]) <= limit_ns)
+                p_all[near] = ref.positions_xyz[end]
         est_idx = np.flatnonzero(np.isfinite(p_all).all(axis=1))
         p_ref = p_all[est_idx]
         poses_ref = None

@@ -578,3 +578,21 @@ def test_mean_and_end_point_error_agree_with_evo():
         assert out['end_error_m'] == pytest.approx(float(ape.error[-1]), abs=1e-6)
         end_gap = np.linalg.norm(evo_est.positions_xyz[-1] - evo_ref.positions_xyz[-1])
         assert out['end_error_m'] == pytest.approx(end_gap, abs=1e-6)
+
+
+def test_auto_match_interpolates_inside_and_takes_the_nearest_end_outside():
+    """The simulator's GPS starts 37 ms after the first scan: 'auto' pairs the first pose with
+    the first fix (as 'nearest' would) and interpolates the others."""
+    from gft_odom.core.metrics import _match
+    stamps = np.arange(4, dtype=np.int64) * 100_000_000
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    poses[:, 0, 3] = np.arange(4) * 0.1  # 1 m/s along x
+    est = Trajectory(stamps, poses)
+    ref_poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    ref_poses[:, 0, 3] = (np.arange(4) * 100 + 37) * 1e-3
+    ref = Trajectory(stamps + 37_000_000, ref_poses)
+    matched = _match(est, ref, 0.05, 'auto', 1.0, need_orientation=False)
+    np.testing.assert_array_equal(matched.est_idx, [0, 1, 2, 3])
+    np.testing.assert_allclose(matched.p_ref[:, 0], [0.037, 0.1, 0.2, 0.3])
+    with pytest.raises(GroundTruthError):  # plain interpolation keeps only 3 of 4: too few
+        _match(Trajectory(stamps[:3], poses[:3]), ref, 0.05, 'interpolate', 1.0, False)
