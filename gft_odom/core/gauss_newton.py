@@ -96,11 +96,10 @@ class GaussNewtonICP:
         iterations = self.max_iterations if max_iterations is None else max_iterations
         reach_m = float(np.sqrt(np.median(np.einsum('ij,ij->i', source_xyz, source_xyz)))
                         ) if n else 0.0
-        self._candidates = None
+        search = _CandidateSearch(target, max_distance_m)
         used = 0
         for used in range(1, iterations + 1):
-            pairs, c = self._correspond(source_xyz, target, T, max_distance_m,
-                                        source_smoothness)
+            pairs, c = self._correspond(source_xyz, search, T, source_smoothness)
             if pairs.shape[0] < 6:
                 return IcpResult(T, pairs.shape[0] / max(n, 1), 0.0, pairs, None, used)
             H, g = self._normal_equations(c)
@@ -114,10 +113,10 @@ class GaussNewtonICP:
             T = apply_update(T, dx)
             # How far a typical scan point moved: the translation plus the rotation's arc at
             # the median range (the few far points may pick a near-nearest candidate meanwhile).
-            self._moved_m += np.linalg.norm(dx[:3]) + np.linalg.norm(dx[3:]) * reach_m
+            search.moved_m += np.linalg.norm(dx[:3]) + np.linalg.norm(dx[3:]) * reach_m
             if np.linalg.norm(dx) < self.convergence_m:
                 break
-        pairs, c = self._correspond(source_xyz, target, T, max_distance_m, source_smoothness)
+        pairs, c = self._correspond(source_xyz, search, T, source_smoothness)
         m = pairs.shape[0]
         if m == 0 or not np.all(np.isfinite(T)):
             return IcpResult(T, m / max(n, 1), 0.0, pairs, None, used)
@@ -129,23 +128,10 @@ class GaussNewtonICP:
             information = H / max(rmse, 1e-3) ** 2
         return IcpResult(T, m / max(n, 1), rmse, pairs, information, used)
 
-    def _correspond(self, source_xyz, target: MapTarget, T, max_distance_m, smoothness):
+    def _correspond(self, source_xyz, search: '_CandidateSearch', T, smoothness):
         world = source_xyz @ T[:3, :3].T + T[:3, 3]
-        if self._candidates is None or self._moved_m > REQUERY_M:
-            _, index = target.tree.query(world, k=CANDIDATES,
-                                         distance_upper_bound=max_distance_m + REQUERY_M)
-            self._candidates = np.minimum(index, target.points.shape[0] - 1)
-            self._candidate_found = index < target.points.shape[0]
-            self._moved_m = 0.0
-        # |q - p|^2 = |q|^2 - 2 q.p + |p|^2 without an (n, k, 3) difference array.
-        dot = np.einsum('nkj,nj->nk', target.points[self._candidates], world)
-        d2 = target.squared_norms[self._candidates] - 2.0 * dot + np.einsum(
-            'ij,ij->i', world, world)[:, None]
-        d2 = np.where(self._candidate_found, d2, np.inf)
-        best = np.argmin(d2, axis=1)
-        rows = np.arange(world.shape[0])
-        valid = np.flatnonzero(d2[rows, best] <= max_distance_m * max_distance_m)
-        tgt = self._candidates[valid, best[valid]]
+        valid, tgt = search.nearest(world)
+        target = search.target
         s = None
         if smoothness is not None:
             s = smoothness[valid]
@@ -165,6 +151,38 @@ class GaussNewtonICP:
 
     def _kernel(self, e: np.ndarray) -> np.ndarray:
         return kernel_weights(self.kernel, e, self.kernel_scale_m)
+
+
+class _CandidateSearch:
+    """The nearest map point of every scan point, over one registration: the KD-tree gives
+    `CANDIDATES` per point, re-asked only after the estimate moved a typical point by
+    `REQUERY_M` (`moved_m`, kept by the solver)."""
+
+    def __init__(self, target: MapTarget, max_distance_m: float) -> None:
+        self.target = target
+        self.max_distance_m = max_distance_m
+        self.candidates: np.ndarray | None = None
+        self.found: np.ndarray | None = None
+        self.moved_m = 0.0
+
+    def nearest(self, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(scan indices with a map point within the distance, their map indices)."""
+        target = self.target
+        if self.candidates is None or self.moved_m > REQUERY_M:
+            _, index = target.tree.query(world, k=CANDIDATES,
+                                         distance_upper_bound=self.max_distance_m + REQUERY_M)
+            self.candidates = np.minimum(index, target.points.shape[0] - 1)
+            self.found = index < target.points.shape[0]
+            self.moved_m = 0.0
+        # |q - p|^2 = |q|^2 - 2 q.p + |p|^2 without an (n, k, 3) difference array.
+        dot = np.einsum('nkj,nj->nk', target.points[self.candidates], world)
+        d2 = target.squared_norms[self.candidates] - 2.0 * dot + np.einsum(
+            'ij,ij->i', world, world)[:, None]
+        d2 = np.where(self.found, d2, np.inf)
+        best = np.argmin(d2, axis=1)
+        rows = np.arange(world.shape[0])
+        valid = np.flatnonzero(d2[rows, best] <= self.max_distance_m ** 2)
+        return valid, self.candidates[valid, best[valid]]
 
 
 def rotation_of(rotvec: np.ndarray) -> np.ndarray:

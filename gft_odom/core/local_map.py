@@ -100,12 +100,10 @@ class LocalMap:
         """The map as the Gauss-Newton solver's target (KD-tree built once per rebuild)."""
         if self._target is None:
             smoothness = None
-            if self.smoothness_variation is not None:
-                cloud = o3d.geometry.PointCloud(self.cloud.points)
-                cloud.estimate_covariances(
-                    o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours))
-                smoothness = smoothness_from_covariances(np.asarray(cloud.covariances),
-                                                         self.smoothness_variation)
+            if self.smoothness_variation is not None:  # with_covariances is set with it
+                covariances = (np.asarray(self.cloud.covariances)
+                               if self.cloud.has_covariances() else np.zeros((len(self), 3, 3)))
+                smoothness = smoothness_from_covariances(covariances, self.smoothness_variation)
             self._target = MapTarget(np.asarray(self.cloud.points),
                                      np.asarray(self.cloud.normals), smoothness)
         return self._target

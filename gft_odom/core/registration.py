@@ -366,6 +366,13 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
         voxel_keeps=cfg.map_voxel_keeps)
 
 
+def in_world_axes(matrix_6x6: np.ndarray, R_world_target: np.ndarray) -> np.ndarray:
+    """A (6, 6) covariance or information of (translation, rotation) moved to world axes."""
+    rotate = np.zeros((6, 6))
+    rotate[:3, :3] = rotate[3:, 3:] = R_world_target
+    return rotate @ matrix_6x6 @ rotate.T
+
+
 def delta_of_twist(twist: np.ndarray, dt_s: float) -> np.ndarray:
     """The rigid motion of a constant twist (rot rad/s, lin m/s) lasting `dt_s`."""
     return make_transform(Rotation.from_rotvec(twist[:3] * dt_s).as_matrix(), twist[3:] * dt_s)
@@ -404,6 +411,7 @@ class ScanRegistration:
             self.local_map.with_normals = True
             if config.residual_model == 'planarity':
                 self.local_map.smoothness_variation = config.rough_surface_variation
+                self.local_map.with_covariances = True  # computed once per map rebuild
         # Smoothness of this scan's downsampled points (residual_model 'frequency').
         self._source_smoothness: np.ndarray | None = None
         self.deskew = config.deskew and config.mode == 'default'
@@ -853,9 +861,7 @@ class ScanRegistration:
         """The match's information in the covariance's axes (None on a fallback)."""
         if status.startswith('fallback') or information is None:
             return None
-        rotate = np.zeros((6, 6))
-        rotate[:3, :3] = rotate[3:, 3:] = R_world_target
-        return rotate @ information @ rotate.T
+        return in_world_axes(information, R_world_target)
 
     def _covariance(self, status: str, information: np.ndarray | None,
                     R_world_target: np.ndarray) -> np.ndarray:
@@ -863,9 +869,7 @@ class ScanRegistration:
         if status.startswith('fallback') or information is None:
             return np.diag(self.fallback_var)
         cov = np.linalg.inv(information + np.diag(1.0 / self.fallback_var))
-        rotate = np.zeros((6, 6))
-        rotate[:3, :3] = rotate[3:, 3:] = R_world_target
-        cov = rotate @ cov @ rotate.T
+        cov = in_world_axes(cov, R_world_target)
         cov = 0.5 * (cov + cov.T)
         idx = np.arange(6)
         cov[idx, idx] = np.maximum(cov[idx, idx], self.min_var)

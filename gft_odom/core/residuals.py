@@ -53,9 +53,11 @@ def skew_rows(a: np.ndarray) -> np.ndarray:
 
 def plane_rows(c: Correspondences) -> tuple[np.ndarray, np.ndarray]:
     """Point-to-plane: J = [n, a x n], r = n . (p - q)."""
-    J = np.hstack([c.normal, np.cross(c.lever, c.normal)])
-    r = np.einsum('ij,ij->i', c.normal, c.source_world - c.target)
-    return J, r
+    return _plane_rows(c.lever, c.normal, c.source_world - c.target)
+
+
+def _plane_rows(a: np.ndarray, n: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.hstack([n, np.cross(a, n)]), np.einsum('ij,ij->i', n, e)
 
 
 def point_rows(c: Correspondences, beam_perpendicular: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -95,9 +97,7 @@ def normal_equations(c: Correspondences, term: Term, kernel) -> tuple[np.ndarray
     a = c.lever[i]
     e = c.source_world[i] - c.target[i]
     if term.kind == 'plane':
-        n = c.normal[i]
-        J = np.hstack([n, np.cross(a, n)])
-        r = np.einsum('ij,ij->i', n, e)
+        J, r = _plane_rows(a, c.normal[i], e)
         w = w * kernel(np.abs(r))
         Jw = J * w[:, None]
         return Jw.T @ J, Jw.T @ r
