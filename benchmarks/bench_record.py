@@ -1,8 +1,8 @@
 """Benchmark of record: gft_odom against its peers on long, varied, held-out drives.
 
 Usage:
-  .venv/bin/python benchmarks/bench_record.py [--drives held-out|training] [--jobs N]
-      [--cache DIR] [--only LABEL ...] [--out benchmarks/results]
+  .venv/bin/python benchmarks/bench_record.py [--drives held-out|training|new-held-out|edge]
+      [--jobs N] [--cache DIR] [--only LABEL ...] [--out benchmarks/results]
 
 Simulates the drives once into the cache (`~/.cache/gft_odom/drives` or $GFT_ODOM_DRIVES;
 ~0.09 s per full-resolution scan, so the 7 held-out drives, ~2.4 km / ~24k scans, take ~35 min
@@ -18,7 +18,9 @@ import time
 from pathlib import Path
 
 from gft_odom.bench.drives import (
+    EDGE_DRIVES,
     HELD_OUT_DRIVES,
+    NEW_HELD_OUT_DRIVES,
     TRAINING_DRIVES,
     default_cache_dir,
     ensure_drives,
@@ -27,6 +29,9 @@ from gft_odom.bench.record import Entry, run_record, write_record
 from gft_odom.bench.report import machine_info
 
 RESULTS = Path(__file__).resolve().parent / 'results'
+# --drives: the drive set by name (its results go to <kind>_<name>.*).
+DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
+              'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES}
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels
@@ -114,7 +119,7 @@ STUDY_ENTRIES = (
 def main(argv=None) -> int:
     """Simulate what is missing, run the record, write its results."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument('--drives', choices=('held-out', 'training'), default='held-out')
+    p.add_argument('--drives', choices=tuple(DRIVE_SETS), default='held-out')
     p.add_argument('--cache', type=Path, default=None,
                    help=f'simulated drives (default {default_cache_dir()})')
     p.add_argument('--jobs', type=int, default=2, help='processes (simulation and methods)')
@@ -129,7 +134,7 @@ def main(argv=None) -> int:
                    help="issue 20's frequency ablation instead of the record entries")
     p.add_argument('--out', type=Path, default=RESULTS)
     args = p.parse_args(argv)
-    drives = HELD_OUT_DRIVES if args.drives == 'held-out' else TRAINING_DRIVES
+    drives = DRIVE_SETS[args.drives]
     pool = STUDY_ENTRIES if args.study else ABLATION_ENTRIES if args.ablation else ENTRIES
     entries = [e for e in pool if args.only is None or e.label in args.only]
     if not entries:

@@ -1,7 +1,10 @@
 """The long, varied drives of the benchmark of record: which ones, and their simulated cache.
 
 Training drives are the only ones any choice of ours was made on; the held-out drives (other
-seeds, every route) are only ever reported. Each drive is simulated once with
+seeds, every route) are only ever reported. The new held-out drives (seeds 211-214, added after
+every choice so far) and the edge drives (seeds 221-222: edge_lawnmower, a fast lawn-mower
+that starts on the block's edge and turns out into an open headland) were never used for a
+choice either: they are only reported. Each drive is simulated once with
 `simulate_to_bag(..., vary=True)` into a cache outside the repository (default
 `~/.cache/gft_odom/drives`, or `$GFT_ODOM_DRIVES`); a drive whose `sim_metadata.json` is
 complete is reused.
@@ -46,6 +49,9 @@ TRAINING_DRIVES = (Drive('lawnmower', 111, 200.0), Drive('spiral', 112, 200.0),
 HELD_OUT_DRIVES = (Drive('lawnmower', 201, 280.0), Drive('every_other_row', 202, 280.0),
                    Drive('spiral', 203, 280.0), Drive('out_and_back', 204, 280.0),
                    Drive('lawnmower', 205, 280.0), Drive('spiral', 206, 280.0))
+NEW_HELD_OUT_DRIVES = (Drive('lawnmower', 211, 280.0), Drive('every_other_row', 212, 280.0),
+                       Drive('spiral', 213, 280.0), Drive('out_and_back', 214, 280.0))
+EDGE_DRIVES = (Drive('edge_lawnmower', 221, 280.0), Drive('edge_lawnmower', 222, 280.0))
 
 
 def default_cache_dir() -> Path:

@@ -8,7 +8,7 @@ time that the LiDAR model can evaluate per firing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -226,7 +226,21 @@ def _with_wobble(orchard: Orchard, s: np.ndarray, uv: np.ndarray, heading: np.nd
 
 # --- CitrusFarm-like routes over many lanes, driven with a varied speed profile ---------------
 
-ROUTES = ('lawnmower', 'every_other_row', 'spiral', 'out_and_back')
+ROUTES = ('lawnmower', 'every_other_row', 'spiral', 'out_and_back', 'edge_lawnmower')
+# edge_lawnmower leaves the block at its edge: a fast lawn-mower that starts on the track
+# outside the outermost row (trees on one side, open ground on the other; lane EDGE_LANE) and
+# turns square, on tight corners, far out past the row ends into an open headland (the shed
+# and vehicles stand OPEN_HEADLAND_M past the trees instead of HEADLAND_M).
+EDGE_ROUTE = 'edge_lawnmower'
+EDGE_LANE = -1
+EDGE_TURN_CLEARANCE_M = 8.0
+OPEN_HEADLAND_M = 30.0
+# Its driving replaces the seed's draw: ~1.8 m/s everywhere (headlands too), 0.8 m corners
+# taken at up to 2 rad/s. The rest of the draw (acceleration, stops, orchard) is the seed's.
+EDGE_DRIVING = {'cruise_speed_mps': 1.8, 'lane_speed_jitter': 0.05, 'max_yaw_rate_rps': 2.0,
+                'turn_radius_m': 0.8}
+# Headlands of the other routes are driven at most this fast.
+HEADLAND_SPEED_MPS = 0.8
 # A pivot (turn on the spot) is an arc this tight: the yaw-rate limit then sets a crawl.
 PIVOT_RADIUS_M = 0.05
 # Sampling of the route path and the slowest the integration of ds / v lets the robot go.
@@ -255,9 +269,12 @@ def _turn(p, heading, angle_rad, radius_m, step):
 
 
 def route_lanes(route: str, n_lanes: int) -> list[int]:
-    """The order in which `route` drives lanes 0..n_lanes-1 (CitrusFarm's route shapes)."""
+    """The order in which `route` drives lanes 0..n_lanes-1 (CitrusFarm's route shapes);
+    the edge route's first lane is the edge track, EDGE_LANE, then lanes 0..n_lanes-2."""
     if route == 'lawnmower':
         return list(range(n_lanes))
+    if route == EDGE_ROUTE:
+        return [EDGE_LANE] + list(range(n_lanes - 1))
     if route == 'every_other_row':
         # Out every other lane, back along the ones skipped.
         out = list(range(0, n_lanes, 2))
@@ -278,18 +295,36 @@ def route_lanes(route: str, n_lanes: int) -> list[int]:
     raise SimulationError(f'unknown route {route!r}; choose one of {ROUTES}')
 
 
+def route_turn_clearance_m(route: str) -> float:
+    """How far past the last trunk `route` drives into the headland before it turns."""
+    return EDGE_TURN_CLEARANCE_M if route == EDGE_ROUTE else TURN_CLEARANCE_M
+
+
+def route_headland_m(route: str) -> float:
+    """Distance from the outermost trees to the row-end objects in the orchard of `route`."""
+    return OPEN_HEADLAND_M if route == EDGE_ROUTE else HEADLAND_M
+
+
+def route_driving(route: str, variation: OrchardVariation) -> OrchardVariation:
+    """The driving `route` is simulated with: the seed's draw, the edge route's fast tight
+    turns in place of its speeds and turns."""
+    return replace(variation, **EDGE_DRIVING) if route == EDGE_ROUTE else variation
+
+
 def route_lane_count(route: str, distance_m: float, row_length_m: float) -> int:
     """Lanes a route needs for about `distance_m` with rows `row_length_m` long (>= 2)."""
-    per_lane = row_length_m + 2.0 * TURN_CLEARANCE_M + 4.0
+    per_lane = row_length_m + 2.0 * route_turn_clearance_m(route) + 4.0
     passes = max(2, int(np.ceil(distance_m / per_lane)))
     return int(np.ceil(passes / 2)) if route == 'out_and_back' else passes
 
 
-def _route_path(orchard: Orchard, route: str, lanes: list[int], turn_radius_m: float,
-                step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _route_path(orchard: Orchard, lanes: list[int], turn_radius_m: float,
+                turn_clearance_m: float, step: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Route path in the row frame: (uv, heading, lane index per sample, -1 in headlands)."""
     u0, u1 = orchard.row_start_u_m, orchard.row_end_u_m
-    v = [orchard.lane_v_m(lane) for lane in lanes]
+    v = [orchard.edge_lane_v_m if lane == EDGE_LANE else orchard.lane_v_m(lane)
+         for lane in lanes]
     pieces_uv, pieces_h, pieces_lane = [], [], []
 
     def add(piece, lane_index):
@@ -309,15 +344,15 @@ def _route_path(orchard: Orchard, route: str, lanes: list[int], turn_radius_m: f
         side = np.sign(np.cos(heading) * dv) if abs(dv) > 1e-9 else 1.0
         radius = PIVOT_RADIUS_M if abs(dv) < 1e-9 else float(
             np.clip(turn_radius_m, PIVOT_RADIUS_M, 0.5 * abs(dv)))
-        over = TURN_CLEARANCE_M - radius
+        over = turn_clearance_m - radius
         if abs(dv) < 1e-9:
             # Out and back: drive into the headland, pivot half a turn, come back.
-            add(_straight(p, heading, TURN_CLEARANCE_M, step), -1)
+            add(_straight(p, heading, turn_clearance_m, step), -1)
             p = pieces_uv[-1][-1]
             add(_turn(p, heading, side * np.pi, radius, step), -1)
             heading += side * np.pi
             p = pieces_uv[-1][-1]
-            add(_straight(p, heading, TURN_CLEARANCE_M, step), -1)
+            add(_straight(p, heading, turn_clearance_m, step), -1)
         else:
             add(_straight(p, heading, over, step), -1)
             for _ in range(2):
@@ -336,15 +371,15 @@ def _route_path(orchard: Orchard, route: str, lanes: list[int], turn_radius_m: f
 
 
 def _speed_profile(s: np.ndarray, curvature: np.ndarray, lane_of_sample: np.ndarray,
-                   variation: OrchardVariation, rng: np.random.Generator
+                   variation: OrchardVariation, headland_mps: float, rng: np.random.Generator
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Speed at every path sample: per-lane cruise, yaw-rate and acceleration limits, stops
-    from rest to rest. Returns (speed, stop sample indices, stop durations)."""
+    """Speed at every path sample: per-lane cruise, `headland_mps` in the headlands, yaw-rate
+    and acceleration limits, stops from rest to rest. Returns (speed, stop sample indices,
+    stop durations)."""
     n_lanes = int(lane_of_sample.max()) + 1
     jitter = 1.0 + variation.lane_speed_jitter * rng.uniform(-1.0, 1.0, n_lanes)
     cruise = np.clip(variation.cruise_speed_mps * jitter, MIN_CRUISE_MPS, MAX_SPEED_MPS)
-    headland = min(variation.cruise_speed_mps, 0.8)
-    speed = np.where(lane_of_sample >= 0, cruise[np.maximum(lane_of_sample, 0)], headland)
+    speed = np.where(lane_of_sample >= 0, cruise[np.maximum(lane_of_sample, 0)], headland_mps)
     speed = np.minimum(speed, variation.max_yaw_rate_rps / np.maximum(curvature, 1e-9))
     n_stops = rng.poisson(variation.stops_per_100m * s[-1] / 100.0)
     stops = np.sort(np.searchsorted(s, rng.uniform(0.05, 0.95, n_stops) * s[-1]))
@@ -364,7 +399,8 @@ def make_route_motion(orchard: Orchard, route: str, n_lanes: int,
                       variation: OrchardVariation, seed: int = 0,
                       lateral_wobble_m: float = 0.05,
                       yaw_wobble_rad: float = 0.02) -> RobotMotion:
-    """Drive `route` over lanes 0..n_lanes-1 of `orchard` with the speeds of `variation`.
+    """Drive `route` over `n_lanes` lanes of `orchard` with the speeds of `variation`
+    (`route_driving` gives the edge route's).
 
     The drive starts and ends at rest; stops hold the robot still for a few seconds.
     """
@@ -372,15 +408,19 @@ def make_route_motion(orchard: Orchard, route: str, n_lanes: int,
     if max(lanes) > len(orchard.row_v_m) - 2:
         raise SimulationError(f'route {route!r} needs {max(lanes) + 2} rows, the orchard has '
                               f'{len(orchard.row_v_m)}')
-    uv, heading, lane_of_sample = _route_path(orchard, route, lanes, variation.turn_radius_m,
-                                              ROUTE_STEP_M)
+    uv, heading, lane_of_sample = _route_path(orchard, lanes, variation.turn_radius_m,
+                                              route_turn_clearance_m(route), ROUTE_STEP_M)
     seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
     # A pivot arc is shorter than its samples' spacing suggests; keep s strictly increasing.
     seg = np.maximum(seg, 1e-4)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     curvature = np.abs(np.gradient(heading, s))
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x40711]))
-    speed, stops, durations = _speed_profile(s, curvature, lane_of_sample, variation, rng)
+    # The edge route keeps its speed through the open headland; the others slow down there.
+    headland_mps = variation.cruise_speed_mps if route == EDGE_ROUTE else min(
+        variation.cruise_speed_mps, HEADLAND_SPEED_MPS)
+    speed, stops, durations = _speed_profile(s, curvature, lane_of_sample, variation,
+                                             headland_mps, rng)
     v_mid = np.maximum(0.5 * (speed[1:] + speed[:-1]), _CRAWL_MPS)
     t = np.concatenate([[0.0], np.cumsum(seg / v_mid)])
     # A stop: the same sample twice, `duration` apart (t stays strictly increasing).

@@ -177,6 +177,12 @@ class Orchard:
         """Row-frame (..., 2) -> world (..., 2)."""
         return np.asarray(uv, dtype=float) @ self.rotation_2d.T + self.origin_xy_m
 
+    @property
+    def edge_lane_v_m(self) -> float:
+        """v of the track along the outside of row 0, the block's edge: trees on one side,
+        open ground on the other (nothing is placed at v < row_v_m[0])."""
+        return float(self.row_v_m[0] - 0.5 * self.row_spacing_m)
+
     def lane_v_m(self, lane: int) -> float:
         """v of the lane between rows `lane` and `lane + 1`."""
         if not 0 <= lane < len(self.row_v_m) - 1:
@@ -241,13 +247,16 @@ def _add_ruts(ground: Heightfield, rot: np.ndarray, origin: np.ndarray, lane_v: 
 
 def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
                      ground_resolution_m: float = 0.25, margin_m: float = 60.0,
-                     variation: OrchardVariation | None = None) -> Orchard:
+                     variation: OrchardVariation | None = None,
+                     headland_m: float = HEADLAND_M) -> Orchard:
     """Build an orchard from `seed`: `n_rows` rows of trees about `row_length_m` long.
 
     `margin_m` is how far the ground extends beyond the row-end objects (the heightfield is
     clamped beyond that, i.e. flat-ish far away). `variation` (see sim/variation.py) replaces
     the fixed ranges with one drawn orchard; without it the orchard is what it always was for
-    this seed (the random stream is the same either way).
+    this seed (the random stream is the same either way). `headland_m` moves the row-end
+    objects (shed, vehicles) that far past the outermost trees, to leave an open headland;
+    nothing else changes with it (the ground, trees and ruts are those of the same seed).
     """
     if n_rows < 2:
         raise SimulationError(f'n_rows must be >= 2 (a lane needs two rows), got {n_rows}')
@@ -364,12 +373,12 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
     # end, one or two parked vehicles at the other.
     mid_v = 0.5 * row_v[-1]
     shed_end = rng.integers(2)
-    shed_u = (row_start_u - HEADLAND_M - 7.0) if shed_end == 0 else (row_end_u + HEADLAND_M + 7.0)
+    shed_u = (row_start_u - headland_m - 7.0) if shed_end == 0 else (row_end_u + headland_m + 7.0)
     box_uv = [(shed_u, mid_v + rng.uniform(-0.25, 0.25) * row_v[-1])]
     box_half = [(rng.uniform(2.0, 3.0), rng.uniform(3.0, 5.0), rng.uniform(1.5, 2.2))]
     box_yaw = [heading + rng.normal(0.0, 0.05)]
     box_surface = [BUILDING]
-    vehicle_u = (row_end_u + HEADLAND_M + 6.5) if shed_end == 0 else (row_start_u - HEADLAND_M
+    vehicle_u = (row_end_u + headland_m + 6.5) if shed_end == 0 else (row_start_u - headland_m
                                                                          - 6.5)
     for _ in range(int(rng.integers(1, 3))):
         box_uv.append((vehicle_u + rng.normal(0.0, 0.5), rng.uniform(0.0, row_v[-1])))

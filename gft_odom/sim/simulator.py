@@ -30,6 +30,8 @@ from gft_odom.sim.motion import (
     make_motion,
     make_route_motion,
     required_row_length_m,
+    route_driving,
+    route_headland_m,
     route_lane_count,
 )
 from gft_odom.sim.orchard import Orchard, generate_orchard
@@ -167,11 +169,13 @@ class ScanSimulator:
         """The simulator of one drive, and the variation it was drawn with (None: fixed).
 
         `scenario` is one of the short scenarios (row, uturn, loop: `n_scans` sweeps) or one
-        of the routes (lawnmower, every_other_row, spiral, out_and_back: about `distance_m`
-        of driving, the whole route unless `n_scans` cuts it short). `vary` draws orchard,
-        terrain, driving, mount and wind from the seed (sim/variation.py).
+        of the routes (lawnmower, every_other_row, spiral, out_and_back, edge_lawnmower:
+        about `distance_m` of driving, the whole route unless `n_scans` cuts it short). `vary`
+        draws orchard, terrain, driving, mount and wind from the seed (sim/variation.py); the
+        edge route replaces the drawn speeds and turns with its own (motion.route_driving),
+        and the variation returned is what was driven.
         """
-        variation = OrchardVariation.draw(seed) if vary else None
+        variation = route_driving(scenario, OrchardVariation.draw(seed)) if vary else None
         if variation is not None:
             config = replace(
                 config, speed_mps=variation.cruise_speed_mps,
@@ -195,11 +199,11 @@ class ScanSimulator:
             motion = make_motion(orchard, scenario, duration_s, config.speed_mps, seed,
                                  config.lateral_wobble_m, config.yaw_wobble_rad)
             return cls(orchard, motion, config, seed), variation
-        route_variation = variation or OrchardVariation.nominal()
+        route_variation = variation or route_driving(scenario, OrchardVariation.nominal())
         n_lanes = route_lane_count(scenario, distance_m, route_variation.row_length_m)
         orchard = generate_orchard(seed, n_rows=n_lanes + 2,
                                    row_length_m=route_variation.row_length_m,
-                                   variation=variation)
+                                   variation=variation, headland_m=route_headland_m(scenario))
         motion = make_route_motion(orchard, scenario, n_lanes, route_variation, seed,
                                    config.lateral_wobble_m, config.yaw_wobble_rad)
         return cls(orchard, motion, config, seed), variation

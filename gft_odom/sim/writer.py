@@ -81,12 +81,12 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
                     distance_m: float = 300.0, vary: bool = False) -> SimulationResult:
     """Simulate `n_scans` sweeps of `scenario` in the orchard of `seed`; write the dataset.
 
-    Routes (lawnmower, every_other_row, spiral, out_and_back) drive about `distance_m`;
-    `n_scans=None` simulates the whole route. `vary` draws the orchard, terrain, driving,
-    mount and wind from the seed; the draws go into `sim_metadata.json` beside the bag and
-    into the bag (rosbag2 custom_data, a ROS 1 bag a std_msgs/String on `METADATA_TOPIC`).
-    `progress(k)` is called after each scan with the number of scans done. Nothing already
-    written is overwritten: an existing bag raises SimulationError.
+    Routes (lawnmower, every_other_row, spiral, out_and_back, edge_lawnmower) drive about
+    `distance_m`; `n_scans=None` simulates the whole route. `vary` draws the orchard, terrain,
+    driving, mount and wind from the seed; the draws go into `sim_metadata.json` beside the
+    bag and into the bag (rosbag2 custom_data, a ROS 1 bag a std_msgs/String on
+    `METADATA_TOPIC`). `progress(k)` is called after each scan with the number of scans done.
+    Nothing already written is overwritten: an existing bag raises SimulationError.
     """
     from gft_odom.io.bags import BagWriter
     from gft_odom.io.pointcloud2 import VELODYNE_XYZIR_ROS1, VELODYNE_XYZIRT, encode_scan

@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 from gft_odom.bench import drives as drives_module
-from gft_odom.bench.drives import Drive, ensure_drives
+from gft_odom.bench.drives import (
+    EDGE_DRIVES,
+    HELD_OUT_DRIVES,
+    NEW_HELD_OUT_DRIVES,
+    TRAINING_DRIVES,
+    Drive,
+    ensure_drives,
+)
 from gft_odom.bench.record import (
     KITTI_LENGTHS_M,
     Entry,
@@ -61,6 +68,23 @@ def test_ensure_drives_reuses_complete_drives_and_redoes_interrupted_ones(tmp_pa
     assert [s.n_scans for s in sequences] == [5, 7]
     assert not (tmp_path / f'{interrupted.name}.partial').exists()
     assert sequences[1].bag_path.parent == tmp_path / interrupted.name
+
+
+def test_drive_sets_share_no_seed_and_the_record_offers_each():
+    from pathlib import Path
+
+    from helpers import load_script
+    sets = (TRAINING_DRIVES, HELD_OUT_DRIVES, NEW_HELD_OUT_DRIVES, EDGE_DRIVES)
+    seeds = [d.seed for drives in sets for d in drives]
+    assert len(seeds) == len(set(seeds))
+    assert {d.seed for d in NEW_HELD_OUT_DRIVES} == {211, 212, 213, 214}
+    assert {d.route for d in NEW_HELD_OUT_DRIVES} == {'lawnmower', 'every_other_row', 'spiral',
+                                                      'out_and_back'}
+    assert {d.route for d in EDGE_DRIVES} == {'edge_lawnmower'}
+    assert all(d.distance_m == 280.0 for d in NEW_HELD_OUT_DRIVES + EDGE_DRIVES)
+    record = load_script(Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_record.py')
+    assert record.DRIVE_SETS == {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
+                                 'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES}
 
 
 @pytest.mark.slow

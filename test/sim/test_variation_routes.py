@@ -9,13 +9,21 @@ import numpy as np
 import pytest
 
 from gft_odom.sim.motion import (
+    EDGE_DRIVING,
+    EDGE_LANE,
+    EDGE_ROUTE,
+    EDGE_TURN_CLEARANCE_M,
+    OPEN_HEADLAND_M,
     PIVOT_RADIUS_M,
     ROUTES,
+    TURN_CLEARANCE_M,
     make_route_motion,
+    route_headland_m,
     route_lane_count,
     route_lanes,
+    route_turn_clearance_m,
 )
-from gft_odom.sim.orchard import RUT_OFFSET_M, generate_orchard
+from gft_odom.sim.orchard import HEADLAND_M, RUT_OFFSET_M, TRUNK, generate_orchard
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
 from gft_odom.sim.variation import MAX_SPEED_MPS, VARIATION_RANGES, OrchardVariation
 from gft_odom.sim.writer import METADATA_FILE, METADATA_KEY, read_drive_metadata, simulate_to_bag
@@ -155,3 +163,105 @@ def test_docs_list_the_ranges_the_simulator_draws_from():
     documented = {name: (float(lo), float(hi)) for name, lo, hi in
                   re.findall(r'^\| `(\w+)` \| (-?[\d.]+) \| (-?[\d.]+) \|$', page, re.M)}
     assert documented == VARIATION_RANGES
+
+
+# --- edge_lawnmower: leaves the block at its edge into open ground --------------------------
+
+@pytest.fixture(scope='module')
+def edge_drive():
+    """Held-out edge drive 221 as the record simulates it (motion only: no ray is cast)."""
+    sim, variation = ScanSimulator.for_drive(SimConfig(azimuth_step_deg=2.0), EDGE_ROUTE, 221,
+                                             distance_m=280.0, vary=True)
+    t = np.arange(0.0, sim.motion.duration_s, 0.05)
+    poses = sim.motion.poses(t)
+    uv = (poses[:, :2, 3] - sim.orchard.origin_xy_m) @ sim.orchard.rotation_2d
+    return sim.orchard, sim.motion, variation, poses, uv
+
+
+def _row_frame(orchard, xy):
+    return (xy[..., :2] - orchard.origin_xy_m) @ orchard.rotation_2d
+
+
+def test_edge_route_starts_on_the_edge_track_with_open_ground_beyond(edge_drive):
+    orchard, _, _, _, uv = edge_drive
+    assert route_lanes(EDGE_ROUTE, 4) == [EDGE_LANE, 0, 1, 2]
+    v_start = uv[0, 1]
+    assert abs(v_start - orchard.edge_lane_v_m) < 0.1
+    # Trees on one side only: row 0 half a row spacing away, nothing at all on the other.
+    trunks = _row_frame(orchard, orchard.cylinders.base_m[orchard.cylinders.surface == TRUNK])
+    assert np.abs(trunks[:, 1] - v_start).min() > 0.4 * orchard.row_spacing_m
+    cyl_v = _row_frame(orchard, orchard.cylinders.base_m)[:, 1]
+    crown_v = _row_frame(orchard, orchard.canopies.centre_m)[:, 1] - \
+        orchard.canopies.radii_m[:, 1]
+    box_v = _row_frame(orchard, orchard.boxes.centre_m)[:, 1] - \
+        np.linalg.norm(orchard.boxes.half_extent_m[:, :2], axis=1)
+    assert min(cyl_v.min(), crown_v.min(), box_v.min()) > v_start + 0.5
+    # The first lane is driven along the edge, the whole row length.
+    first = np.abs(uv[:, 1] - v_start) < 0.2
+    assert np.ptp(uv[first, 0]) > orchard.row_end_u_m - orchard.row_start_u_m
+
+
+def test_edge_route_turns_far_past_the_row_ends_in_open_ground(edge_drive):
+    orchard, _, _, _, uv = edge_drive
+    u0, u1 = orchard.row_start_u_m, orchard.row_end_u_m
+    past = np.maximum(uv[:, 0] - u1, u0 - uv[:, 0])
+    # Out at both ends, well beyond the crowns of the last trees (< 3.5 m past the trunks).
+    assert (uv[:, 0] - u1).max() > EDGE_TURN_CLEARANCE_M - 0.3
+    assert (u0 - uv[:, 0]).max() > EDGE_TURN_CLEARANCE_M - 0.3
+    cyl_u = _row_frame(orchard, orchard.cylinders.base_m)[:, 0]
+    crown_u = _row_frame(orchard, orchard.canopies.centre_m)[:, 0]
+    reach = orchard.canopies.radii_m[:, 0]
+    assert cyl_u.min() > u0 - 2.5 and cyl_u.max() < u1 + 2.5  # trunks, row-end posts, pipes
+    assert (crown_u - reach).min() > u0 - 3.5 and (crown_u + reach).max() < u1 + 3.5
+    # No shed or vehicle within 20 m of where the robot turns.
+    headland = uv[past > 3.5]
+    boxes = _row_frame(orchard, orchard.boxes.centre_m)
+    gap = np.linalg.norm(headland[:, None] - boxes[None], axis=2) - \
+        np.linalg.norm(orchard.boxes.half_extent_m[:, :2], axis=1)
+    assert gap.min() > 20.0
+
+
+def test_edge_route_is_fast_with_tight_turns(edge_drive):
+    _, motion, variation, poses, _ = edge_drive
+    assert variation.cruise_speed_mps == EDGE_DRIVING['cruise_speed_mps']
+    assert variation.seed == 221 and variation.slope == OrchardVariation.draw(221).slope
+    speed = np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1) / 0.05
+    yaw = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    yaw_rate = np.abs(np.diff(yaw)) / 0.05
+    assert 1.7 < speed.max() <= MAX_SPEED_MPS * 1.05
+    assert np.median(speed[speed > 0.1]) > 1.6
+    assert 1.5 < yaw_rate.max() <= EDGE_DRIVING['max_yaw_rate_rps'] * 1.1 + 2 * np.pi * 0.5 * 0.02
+    # Squared turns: quarter arcs of the 0.8 m corner radius (curvature 1 / 0.8 m).
+    moving = np.diff(motion.s_m, prepend=-1.0) > 0.0  # a stop repeats its sample
+    curvature = np.abs(np.gradient(motion.heading_rad[moving], motion.s_m[moving]))
+    assert 1.0 / EDGE_DRIVING['turn_radius_m'] == pytest.approx(np.percentile(
+        curvature[curvature > 0.5], 50), rel=0.05)
+
+
+def test_edge_route_is_deterministic_and_other_routes_keep_their_orchard(edge_drive):
+    orchard, motion, variation, _, _ = edge_drive
+    again, variation_again = ScanSimulator.for_drive(SimConfig(azimuth_step_deg=2.0),
+                                                     EDGE_ROUTE, 221, distance_m=280.0,
+                                                     vary=True)
+    assert variation_again == variation
+    for name in ('s_m', 'uv_m', 'heading_rad', 't_s'):
+        np.testing.assert_array_equal(getattr(again.motion, name), getattr(motion, name))
+    np.testing.assert_array_equal(again.orchard.boxes.centre_m, orchard.boxes.centre_m)
+    # The other routes: the seed's own driving, turns TURN_CLEARANCE_M out, row-end objects
+    # HEADLAND_M past the trees; the edge orchard differs from theirs only in those objects.
+    sim, other = ScanSimulator.for_drive(SimConfig(azimuth_step_deg=2.0), 'lawnmower', 221,
+                                         distance_m=280.0, vary=True)
+    assert other == OrchardVariation.draw(221)
+    assert route_turn_clearance_m('lawnmower') == TURN_CLEARANCE_M
+    assert route_headland_m('lawnmower') == HEADLAND_M
+    u1 = sim.orchard.row_end_u_m
+    assert sim.motion.uv_m[:, 0].max() - u1 == pytest.approx(TURN_CLEARANCE_M, abs=0.01)
+    n_rows = len(orchard.row_v_m)
+    plain = generate_orchard(221, n_rows=n_rows, row_length_m=variation.row_length_m,
+                             variation=variation)
+    np.testing.assert_array_equal(plain.cylinders.base_m, orchard.cylinders.base_m)
+    np.testing.assert_array_equal(plain.canopies.centre_m, orchard.canopies.centre_m)
+    np.testing.assert_array_equal(plain.ground.z_m, orchard.ground.z_m)
+    shift = np.abs(_row_frame(orchard, orchard.boxes.centre_m)[:, 0] -
+                   _row_frame(plain, plain.boxes.centre_m)[:, 0])
+    np.testing.assert_allclose(shift, OPEN_HEADLAND_M - HEADLAND_M, atol=1e-9)
