@@ -40,6 +40,9 @@ class MapTarget:
     normals: np.ndarray  # (n, 3) unit
     smoothness: np.ndarray | None = None  # (n,) in [0, 1], for map-side models
     tree: cKDTree | None = None
+    # (n,) the smoothness of the scan point each map point came from (NaN: unknown), for
+    # matching like with like.
+    point_smoothness: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.squared_norms = np.einsum('ij,ij->i', self.points, self.points)
@@ -75,7 +78,8 @@ class GaussNewtonICP:
     """Point cloud to map registration; the residual model decides each pair's rows."""
 
     def __init__(self, residual_model, kernel: str = 'tukey', kernel_scale_m: float = 0.3,
-                 max_iterations: int = 30, convergence_m: float = 1e-4) -> None:
+                 max_iterations: int = 30, convergence_m: float = 1e-4,
+                 affinity_m: float = 0.0) -> None:
         if kernel not in KERNELS:
             raise ValueError(f'kernel must be one of {KERNELS}, got {kernel!r}')
         self.model = residual_model
@@ -83,20 +87,27 @@ class GaussNewtonICP:
         self.kernel_scale_m = kernel_scale_m
         self.max_iterations = max_iterations
         self.convergence_m = convergence_m
+        # Like with like: a pair whose scan and map points differ in smoothness by d costs
+        # (affinity_m * d)^2 more when the nearest of the candidates is chosen (0: by
+        # distance alone).
+        self.affinity_m = affinity_m
 
     def register(self, source_xyz: np.ndarray, target: MapTarget, init: np.ndarray,
                  max_distance_m: float, source_smoothness: np.ndarray | None = None,
-                 max_iterations: int | None = None) -> IcpResult:
+                 max_iterations: int | None = None,
+                 match_smoothness: np.ndarray | None = None) -> IcpResult:
         """Align `source_xyz` (sensor frame) to `target` starting at `init` (T_world_sensor).
 
         `source_smoothness` (n,) in [0, 1] per source point, for frequency-aware models; a
-        model reading the map's smoothness takes it from `target.smoothness`."""
+        model reading the map's smoothness takes it from `target.smoothness`.
+        `match_smoothness` (n,): the scan points' smoothness the candidate choice compares
+        with `target.point_smoothness` (with `affinity_m` > 0)."""
         T = np.array(init, dtype=float)
         n = source_xyz.shape[0]
         iterations = self.max_iterations if max_iterations is None else max_iterations
         reach_m = float(np.sqrt(np.median(np.einsum('ij,ij->i', source_xyz, source_xyz)))
                         ) if n else 0.0
-        search = _CandidateSearch(target, max_distance_m)
+        search = _CandidateSearch(target, max_distance_m, match_smoothness, self.affinity_m)
         used = 0
         for used in range(1, iterations + 1):
             pairs, c = self._correspond(source_xyz, search, T, source_smoothness)
@@ -156,11 +167,20 @@ class GaussNewtonICP:
 class _CandidateSearch:
     """The nearest map point of every scan point, over one registration: the KD-tree gives
     `CANDIDATES` per point, re-asked only after the estimate moved a typical point by
-    `REQUERY_M` (`moved_m`, kept by the solver)."""
+    `REQUERY_M` (`moved_m`, kept by the solver).
 
-    def __init__(self, target: MapTarget, max_distance_m: float) -> None:
+    With smoothness on both sides and `affinity_m` > 0 the chosen candidate is the one
+    nearest once a smoothness mismatch d counts as (affinity_m * d)^2 of squared distance:
+    a canopy return pairs with canopy, a trunk or ground return with its own surface."""
+
+    def __init__(self, target: MapTarget, max_distance_m: float,
+                 source_smoothness: np.ndarray | None = None, affinity_m: float = 0.0) -> None:
         self.target = target
         self.max_distance_m = max_distance_m
+        self.mismatch: np.ndarray | None = None
+        self._source_smoothness = (source_smoothness if affinity_m > 0.0
+                                   and target.point_smoothness is not None else None)
+        self._affinity_m = affinity_m
         self.candidates: np.ndarray | None = None
         self.found: np.ndarray | None = None
         self.moved_m = 0.0
@@ -174,14 +194,18 @@ class _CandidateSearch:
             self.candidates = np.minimum(index, target.points.shape[0] - 1)
             self.found = index < target.points.shape[0]
             self.moved_m = 0.0
+            if self._source_smoothness is not None:
+                d = np.abs(self._source_smoothness[:, None]
+                           - target.point_smoothness[self.candidates])
+                self.mismatch = (self._affinity_m * np.nan_to_num(d, nan=0.0)) ** 2
         # |q - p|^2 = |q|^2 - 2 q.p + |p|^2 without an (n, k, 3) difference array.
         dot = np.einsum('nkj,nj->nk', target.points[self.candidates], world)
         d2 = target.squared_norms[self.candidates] - 2.0 * dot + np.einsum(
             'ij,ij->i', world, world)[:, None]
-        d2 = np.where(self.found, d2, np.inf)
-        best = np.argmin(d2, axis=1)
+        d2 = np.where(self.found & (d2 <= self.max_distance_m ** 2), d2, np.inf)
+        best = np.argmin(d2 if self.mismatch is None else d2 + self.mismatch, axis=1)
         rows = np.arange(world.shape[0])
-        valid = np.flatnonzero(d2[rows, best] <= self.max_distance_m ** 2)
+        valid = np.flatnonzero(np.isfinite(d2[rows, best]))
         return valid, self.candidates[valid, best[valid]]
 
 

@@ -4,6 +4,11 @@ The map is the union of the last few keyframes (deskewed scans in the world fram
 `keyframe_distance_m` or `keyframe_rotation_rad`), voxelised and cropped to a radius around the
 newest keyframe. It is rebuilt only when a keyframe is added, so its normals and GICP
 covariances (the expensive part) are computed once per keyframe, not once per scan.
+
+Anchors (`anchor_smoothness` set): when a keyframe leaves the window, its smooth points
+(ground, trunks, posts: what looks the same from any side) stay in the map as anchors for as
+long as they are within range; its canopy goes with it. A row met again from its other side
+then registers against what it showed before, not against foliage seen from elsewhere.
 """
 
 from __future__ import annotations
@@ -64,7 +69,7 @@ class LocalMap:
                  max_keyframes: int, keyframe_distance_m: float, keyframe_rotation_rad: float,
                  normal_neighbours: int, with_normals: bool = True,
                  with_covariances: bool = False, eviction: str = 'oldest',
-                 voxel_keeps: str = 'oldest'):
+                 voxel_keeps: str = 'oldest', anchor_smoothness: float | None = None):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -80,11 +85,19 @@ class LocalMap:
             raise ValueError(f'voxel_keeps must be one of {VOXEL_KEEPS}, got {voxel_keeps!r}')
         self.voxel_keeps = voxel_keeps
         self.max_keyframes = max_keyframes
+        # Smoothness (in [0, 1]) at which a point outlives its keyframe; None: no anchors.
+        self.anchor_smoothness = anchor_smoothness
+        self._anchor_points = np.zeros((0, 3))
+        self._anchor_keys = np.zeros(0, dtype=np.int64)
+        self._anchor_smoothness_values = np.zeros(0)
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
         self.smoothness_variation: float | None = None
-        self._keyframes: list[tuple[np.ndarray, np.ndarray]] = []
+        self._keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         self.cloud = o3d.geometry.PointCloud()
+        # Per served point: the smoothness of the scan point it came from (None when a
+        # keyframe came without one); the solver matches like with like when it has it.
+        self.smoothness: np.ndarray | None = None
         self._target: MapTarget | None = None
 
     def __len__(self) -> int:
@@ -93,7 +106,11 @@ class LocalMap:
     def clear(self) -> None:
         """Drop every keyframe."""
         self._keyframes.clear()
+        self._anchor_points = np.zeros((0, 3))
+        self._anchor_keys = np.zeros(0, dtype=np.int64)
+        self._anchor_smoothness_values = np.zeros(0)
         self.cloud = o3d.geometry.PointCloud()
+        self.smoothness = None
         self._target = None
 
     def target(self) -> MapTarget:
@@ -105,7 +122,8 @@ class LocalMap:
                                if self.cloud.has_covariances() else np.zeros((len(self), 3, 3)))
                 smoothness = smoothness_from_covariances(covariances, self.smoothness_variation)
             self._target = MapTarget(np.asarray(self.cloud.points),
-                                     np.asarray(self.cloud.normals), smoothness)
+                                     np.asarray(self.cloud.normals), smoothness,
+                                     point_smoothness=self.smoothness)
         return self._target
 
     @property
@@ -123,21 +141,43 @@ class LocalMap:
         R_rel = T_last[:3, :3].T @ T_world_sensor[:3, :3]
         return Rotation.from_matrix(R_rel).magnitude() >= self.keyframe_rotation_rad
 
-    def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray) -> None:
-        """Store a keyframe (world-frame points) and rebuild the served cloud."""
+    def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray,
+                     smoothness: np.ndarray | None = None) -> None:
+        """Store a keyframe (world-frame points, optional per-point smoothness in [0, 1])
+        and rebuild the served cloud."""
         keep = voxel_downsample_indices(points_world, self.voxel_size_m,
                                         self._view_priority(points_world, T_world_sensor))
         if len(self._keyframes) >= self.max_keyframes:
             if self.eviction == 'farthest':
                 # Keep what is near: a lane driven again, or the next lane over, stays mapped.
-                where = np.array([T[:3, 3] for T, _ in self._keyframes])
+                where = np.array([T[:3, 3] for T, _, _ in self._keyframes])
                 d2 = np.einsum('ij,ij->i', where - T_world_sensor[:3, 3],
                                where - T_world_sensor[:3, 3])
-                del self._keyframes[int(np.argmax(d2))]
+                self._anchor(self._keyframes.pop(int(np.argmax(d2))))
             else:
-                del self._keyframes[0]
-        self._keyframes.append((T_world_sensor.copy(), points_world[keep]))
+                self._anchor(self._keyframes.pop(0))
+        self._keyframes.append((T_world_sensor.copy(), points_world[keep],
+                                None if smoothness is None else smoothness[keep]))
         self._rebuild(T_world_sensor[:3, 3])
+
+    @property
+    def n_anchors(self) -> int:
+        """Points kept after their keyframe left the window (all of them, in range or not)."""
+        return self._anchor_points.shape[0]
+
+    def _anchor(self, keyframe) -> None:
+        """Keep the smooth points of a keyframe leaving the window (a filled voxel keeps
+        its older anchor)."""
+        _, points, smoothness = keyframe
+        if self.anchor_smoothness is None or smoothness is None:
+            return
+        smooth = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
+        keys = voxel_keys(points[smooth], self.voxel_size_m)
+        new = ~np.isin(keys, self._anchor_keys)
+        self._anchor_points = np.concatenate([self._anchor_points, points[smooth][new]])
+        self._anchor_keys = np.concatenate([self._anchor_keys, keys[new]])
+        self._anchor_smoothness_values = np.concatenate([self._anchor_smoothness_values,
+                                                         smoothness[smooth][new]])
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
@@ -149,19 +189,33 @@ class LocalMap:
     def _rebuild(self, centre_xyz: np.ndarray) -> None:
         # The first point of a voxel wins: newest keyframe first keeps the freshest point,
         # oldest first the one seen first; 'nearest' the one seen from closest.
-        order = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
-        merged = np.concatenate([pts for _, pts in order])
-        priority = (np.concatenate([self._view_priority(pts, T) for T, pts in order])
+        order = list(reversed(self._keyframes) if self.voxel_keeps == 'newest'
+                     else self._keyframes)
+        if self.n_anchors:
+            # Anchors first: they are the oldest content, and a voxel they fill keeps them
+            # (with 'nearest' they compete by range from their sensor, unknown here: last).
+            anchors = (np.full((1, 4), np.nan), self._anchor_points,
+                       self._anchor_smoothness_values)
+            order = order + [anchors] if self.voxel_keeps == 'nearest' else [anchors] + order
+        merged = np.concatenate([pts for _, pts, _ in order])
+        # A keyframe without smoothness counts as unknown (NaN): the solver then matches its
+        # points by distance alone.
+        smooth = (np.concatenate([np.full(len(pts), np.nan) if s is None else s
+                                  for _, pts, s in order])
+                  if any(s is not None for _, _, s in order) else None)
+        priority = (np.concatenate([self._view_priority(pts, T) for T, pts, _ in order])
                     if self.voxel_keeps == 'nearest' else None)
+        if priority is not None:
+            priority = np.nan_to_num(priority, nan=-np.inf)  # anchors: no sensor position
         d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
-        inside = d2 <= self.max_range_m ** 2
-        merged = merged[inside]
-        priority = None if priority is None else priority[inside]
-        merged = merged[voxel_downsample_indices(merged, self.voxel_size_m, priority)]
-        if merged.shape[0] > self.max_points:
+        index = np.flatnonzero(d2 <= self.max_range_m ** 2)
+        index = index[voxel_downsample_indices(
+            merged[index], self.voxel_size_m, None if priority is None else priority[index])]
+        if index.shape[0] > self.max_points:
             # Keep the nearest points: registration is best conditioned close to the sensor.
-            d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
-            merged = merged[np.argpartition(d2, self.max_points - 1)[:self.max_points]]
+            index = index[np.argpartition(d2[index], self.max_points - 1)[:self.max_points]]
+        merged = merged[index]
+        self.smoothness = None if smooth is None else smooth[index]
         cloud = to_cloud(merged)
         if merged.shape[0] >= 3:
             search = o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours)

@@ -131,6 +131,12 @@ class RegistrationConfig:
     # and kiss-icp never replace a filled voxel either). With retry_failed_match: mean ATE
     # 0.097 -> 0.070 m on the seven training drives (docs/benchmarks.md, round 3).
     map_voxel_keeps: str = 'oldest'
+    # Anchors: when a keyframe leaves the window, its points of smoothness >= this (the
+    # graph frequency nu / smooth_nu: ground, trunks, posts) stay in the map while within
+    # map_max_range_m; canopy, which looks different from another row, leaves with it.
+    # Without frequencies (--no-filter) nothing is anchored.
+    map_anchors: bool = False
+    map_anchor_smoothness: float = 0.75
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
@@ -193,6 +199,12 @@ class RegistrationConfig:
     voxel_priority: str = 'first'
     # Gauss-Newton stops when the update's norm (m, rad) falls below this.
     convergence_m: float = 1e-4
+    # Gauss-Newton: match like with like. The map remembers each point's smoothness (its
+    # scan point's nu / smooth_nu), and a scan point picks, among its nearest map points,
+    # the one nearest once a smoothness mismatch d counts as affinity_m * d of distance:
+    # canopy pairs with canopy, ground and trunks with their own surface. 0: distance alone
+    # (also what --no-filter gives: no frequencies, nothing to compare).
+    frequency_affinity_m: float = 0.0
     # Motion compensation (default mode only). An undeskewed sweep registers to about its
     # mid-sweep pose, ~50 ms after the stamp it is published with; the evaluation of before
     # (GPS paired by nearest stamp, 37 ms after the scan) hid that and deskew looked mixed.
@@ -246,6 +258,12 @@ class RegistrationConfig:
         if self.residual_model != 'plane' and self.solver != 'gauss_newton':
             raise ConfigError(f"residual_model {self.residual_model!r} needs solver "
                               f"'gauss_newton' (open3d's ICP has one residual type)")
+        if not (math.isfinite(self.frequency_affinity_m) and self.frequency_affinity_m >= 0.0):
+            raise ConfigError(f'frequency_affinity_m must be a finite number >= 0, '
+                              f'got {self.frequency_affinity_m}')
+        if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
+            raise ConfigError("frequency_affinity_m needs solver 'gauss_newton' (open3d's "
+                              "ICP pairs by distance alone)")
         if not (math.isfinite(self.rough_weight) and self.rough_weight >= 0.0):
             raise ConfigError(f'rough_weight must be a finite number >= 0, '
                               f'got {self.rough_weight}')
@@ -269,7 +287,7 @@ class RegistrationConfig:
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
-        for name in ('min_fitness', 'min_relative_fitness'):
+        for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
         if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
@@ -363,7 +381,8 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
         keyframe_distance_m=cfg.keyframe_distance_m,
         keyframe_rotation_rad=cfg.keyframe_rotation_rad,
         normal_neighbours=cfg.normal_neighbours, eviction=cfg.map_keyframe_eviction,
-        voxel_keeps=cfg.map_voxel_keeps)
+        voxel_keeps=cfg.map_voxel_keeps,
+        anchor_smoothness=cfg.map_anchor_smoothness if cfg.map_anchors else None)
 
 
 def in_world_axes(matrix_6x6: np.ndarray, R_world_target: np.ndarray) -> np.ndarray:
@@ -407,13 +426,15 @@ class ScanRegistration:
                 make_residual_model(config.residual_model, config.rough_residual,
                                     config.rough_weight),
                 config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
-                config.convergence_m)
+                config.convergence_m, config.frequency_affinity_m)
             self.local_map.with_normals = True
             if config.residual_model == 'planarity':
                 self.local_map.smoothness_variation = config.rough_surface_variation
                 self.local_map.with_covariances = True  # computed once per map rebuild
-        # Smoothness of this scan's downsampled points (residual_model 'frequency').
+        # Smoothness of this scan's downsampled points (residual_model 'frequency'), and the
+        # same with unknown kept NaN, what the map remembers (frequency_affinity_m, anchors).
         self._source_smoothness: np.ndarray | None = None
+        self._point_smoothness: np.ndarray | None = None
         self.deskew = config.deskew and config.mode == 'default'
         self.min_var = np.array([config.min_std_m ** 2] * 3 + [config.min_std_rad ** 2] * 3)
         self.fallback_var = np.array(
@@ -557,6 +578,10 @@ class ScanRegistration:
         self._source_smoothness = (
             smoothness_from_nu(nu[keep], self.config.smooth_nu)
             if nu is not None and self.config.residual_model == 'frequency' else None)
+        remembered = nu is not None and (self.config.map_anchors or (
+            self.solver is not None and self.config.frequency_affinity_m > 0.0))
+        self._point_smoothness = (smoothness_from_nu(nu[keep], self.config.smooth_nu,
+                                                     unknown=np.nan) if remembered else None)
         timings['downsample'] = time.perf_counter() - t0
         t0 = time.perf_counter()
         offsets_s = None
@@ -605,14 +630,17 @@ class ScanRegistration:
             source_xyz = deskew_points(points_xyz[keep], offsets_s[keep],
                                        self._deskew_motion(dt_s, T_prev_curr), dt_s)
 
-        def keyframe_xyz() -> np.ndarray:
+        def keyframe_xyz() -> tuple[np.ndarray, np.ndarray | None]:
+            """The points a keyframe adds, and their smoothness when the map keeps it."""
             if self.config.map_points_from == 'registration' or source_xyz.shape[0] == 0:
-                return source_xyz
+                return source_xyz, self._point_smoothness
             dense = voxel_downsample_indices(points_xyz, self.config.map_voxel_size_m)
+            smooth = (None if self._point_smoothness is None else smoothness_from_nu(
+                nu[dense], self.config.smooth_nu, unknown=np.nan))
             if not redeskew:
-                return points_xyz[dense]
+                return points_xyz[dense], smooth
             return deskew_points(points_xyz[dense], offsets_s[dense],
-                                 self._deskew_motion(dt_s, T_prev_curr), dt_s)
+                                 self._deskew_motion(dt_s, T_prev_curr), dt_s), smooth
         result = self._finish(stamp_ns, dt_s, status, T_new, n_used, t_start, timings,
                               source_xyz, match, keyframe_xyz)
         if status == 'fallback_implausible':
@@ -813,7 +841,7 @@ class ScanRegistration:
         if self.solver is not None and target is self.local_map.cloud:
             return self.solver.register(np.asarray(source.points), self.local_map.target(),
                                         init, distance_m, self._source_smoothness,
-                                        criteria.max_iteration)
+                                        criteria.max_iteration, self._point_smoothness)
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
                 self.config.gicp_epsilon, self.kernel)
@@ -878,7 +906,7 @@ class ScanRegistration:
     def _update_reference(self, source_xyz: np.ndarray | None, T_world_sensor: np.ndarray,
                           status: str, keyframe_xyz=None) -> None:
         """Paper: the scan becomes the target. Default: a keyframe when due, its points from
-        `keyframe_xyz()` (only built then) or the registration's."""
+        `keyframe_xyz()` (only built then, with their smoothness) or the registration's."""
         if source_xyz is None:
             return
         if self.mode == 'paper':
@@ -891,5 +919,7 @@ class ScanRegistration:
             self.local_map.clear()
             self._map_provisional = False
         if self.local_map.needs_keyframe(T_world_sensor) or len(self.local_map) == 0:
-            points = source_xyz if keyframe_xyz is None else keyframe_xyz()
-            self.local_map.add_keyframe(transform_points(T_world_sensor, points), T_world_sensor)
+            points, smoothness = ((source_xyz, None) if keyframe_xyz is None
+                                  else keyframe_xyz())
+            self.local_map.add_keyframe(transform_points(T_world_sensor, points), T_world_sensor,
+                                        smoothness)

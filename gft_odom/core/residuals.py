@@ -194,14 +194,14 @@ def make_residual_model(name: str, rough_residual: str = 'beam_perpendicular',
     raise ConfigError(f'residual model must be one of {RESIDUAL_MODELS}, got {name!r}')
 
 
-def smoothness_from_nu(nu: np.ndarray, nu_smooth: float) -> np.ndarray:
+def smoothness_from_nu(nu: np.ndarray, nu_smooth: float, unknown: float = 0.0) -> np.ndarray:
     """Smoothness of scan points from their graph frequency: nu / nu_smooth, clipped to
-    [0, 1]; no spectrum (isolated, NaN) is rough (0).
+    [0, 1]; no spectrum (isolated, NaN) is `unknown` (rough, 0, by default).
 
     On the scan-line graph `ldos_mean` is the weighted degree over lambda_max: a point whose
     two ring neighbours continue its surface has nu near 0.5, a canopy return ~0."""
     nu = np.asarray(nu, dtype=np.float64)
-    return np.clip(np.nan_to_num(nu / nu_smooth, nan=0.0), 0.0, 1.0)
+    return np.clip(np.nan_to_num(nu / nu_smooth, nan=unknown), 0.0, 1.0)
 
 
 def smoothness_from_covariances(covariances: np.ndarray, variation_rough: float) -> np.ndarray:

@@ -7,7 +7,13 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gft_odom.core.gauss_newton import GaussNewtonICP, MapTarget, apply_update, kernel_weights
+from gft_odom.core.gauss_newton import (
+    GaussNewtonICP,
+    MapTarget,
+    _CandidateSearch,
+    apply_update,
+    kernel_weights,
+)
 from gft_odom.core.geometry import invert_transform, make_transform
 from gft_odom.core.residuals import PlaneResidual, SmoothnessResidual
 
@@ -110,3 +116,39 @@ def test_too_few_pairs_returns_no_information(scene):
     far = scene[:50] + 100.0
     result = GaussNewtonICP(PlaneResidual()).register(far, target_of(scene), np.eye(4), 1.0)
     assert result.fitness == 0.0 and result.information is None
+
+
+def test_affinity_pairs_like_with_like():
+    # A rough map point 0.10 m away and a smooth one 0.08 m away: by distance the smooth one
+    # wins; with the affinity a rough scan point picks the rough one, a smooth one its own.
+    points = np.array([[0.10, 0.0, 0.0], [-0.08, 0.0, 0.0]])
+    target = MapTarget(points, np.tile([0.0, 0.0, 1.0], (2, 1)),
+                       point_smoothness=np.array([0.0, 1.0]))
+    scan = np.zeros((2, 3))
+    plain = _CandidateSearch(target, 1.0)
+    assert list(plain.nearest(scan)[1]) == [1, 1]
+    alike = _CandidateSearch(target, 1.0, np.array([0.0, 1.0]), affinity_m=0.5)
+    assert list(alike.nearest(scan)[1]) == [0, 1]
+    # An unknown smoothness (NaN, either side) falls back to the distance.
+    unknown = _CandidateSearch(target, 1.0, np.array([np.nan, 0.0]), affinity_m=0.5)
+    assert list(unknown.nearest(scan)[1]) == [1, 0]
+
+
+def test_affinity_never_pairs_beyond_the_distance():
+    points = np.array([[0.5, 0.0, 0.0], [1.5, 0.0, 0.0]])
+    target = MapTarget(points, np.tile([0.0, 0.0, 1.0], (2, 1)),
+                       point_smoothness=np.array([1.0, 0.0]))
+    valid, index = _CandidateSearch(target, 1.0, np.array([0.0]), affinity_m=5.0).nearest(
+        np.zeros((1, 3)))
+    assert list(valid) == [0] and list(index) == [0]  # the rough one is 1.5 m away: not it
+
+
+def test_affinity_prefers_a_pair_within_the_distance():
+    # The alike map point is 1.02 m away (a candidate, beyond the distance); the unlike one at
+    # 0.6 m is the pair.
+    points = np.array([[1.02, 0.0, 0.0], [0.6, 0.0, 0.0]])
+    target = MapTarget(points, np.tile([0.0, 0.0, 1.0], (2, 1)),
+                       point_smoothness=np.array([0.0, 1.0]))
+    valid, index = _CandidateSearch(target, 1.0, np.array([0.0]), affinity_m=5.0).nearest(
+        np.zeros((1, 3)))
+    assert list(valid) == [0] and list(index) == [1]

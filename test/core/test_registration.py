@@ -734,3 +734,73 @@ def test_a_voxel_keeps_the_point_seen_from_closest_when_asked():
         T[0, 3] = sensor_x
         local_map.add_keyframe(np.array([[point_x, 0.5, 0.5]]), T)
     assert local_map.points_xyz[:, 0].tolist() == [0.5]
+
+
+def test_the_map_remembers_each_points_smoothness():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(1.0, 100.0, 10_000, 5, 0.1, 0.2, 5, with_normals=False)
+    T = np.eye(4)
+    local_map.add_keyframe(np.array([[0.5, 0.5, 0.5], [5.5, 0.5, 0.5], [0.6, 0.5, 0.5]]), T,
+                           np.array([0.2, 0.9, 0.7]))
+    T[0, 3] = 0.5
+    local_map.add_keyframe(np.array([[9.5, 0.5, 0.5]]), T)  # no smoothness: unknown
+    by_x = dict(zip(local_map.points_xyz[:, 0].round(1), local_map.smoothness))
+    assert set(by_x) == {0.5, 5.5, 9.5}  # 0.6 shared 0.5's voxel
+    assert by_x[0.5] == 0.2 and by_x[5.5] == 0.9 and np.isnan(by_x[9.5])
+    np.testing.assert_array_equal(local_map.target().point_smoothness, local_map.smoothness)
+
+
+def test_frequency_affinity_needs_the_gauss_newton_solver():
+    with pytest.raises(ConfigError, match='frequency_affinity_m'):
+        RegistrationConfig(frequency_affinity_m=0.5).validate()
+    with pytest.raises(ConfigError, match='frequency_affinity_m'):
+        RegistrationConfig(solver='gauss_newton', frequency_affinity_m=-1.0).validate()
+    RegistrationConfig(solver='gauss_newton', frequency_affinity_m=0.5).validate()
+
+
+def test_anchors_keep_the_smooth_points_of_a_keyframe_leaving_the_window():
+    from gft_odom.core.local_map import LocalMap
+
+    def at(x):
+        T = np.eye(4)
+        T[0, 3] = x
+        # A smooth point (ground, trunk) and a rough one (canopy) per keyframe.
+        return np.array([[x, 2.0, 0.0], [x, -2.0, 2.0]]), T, np.array([0.9, 0.1])
+
+    maps = {a: LocalMap(0.1, 100.0, 10_000, 2, 1.0, 0.2, 5, with_normals=False,
+                        anchor_smoothness=a) for a in (None, 0.75)}
+    for x in (0.0, 10.0, 20.0):
+        for local_map in maps.values():
+            local_map.add_keyframe(*at(x))
+    plain = {tuple(p) for p in maps[None].points_xyz.round(1)}
+    anchored = {tuple(p) for p in maps[0.75].points_xyz.round(1)}
+    assert (0.0, 2.0, 0.0) not in plain  # the first keyframe left the window
+    assert anchored - plain == {(0.0, 2.0, 0.0)}  # its smooth point stays, its canopy not
+    assert maps[0.75].n_anchors == 1
+    # A keyframe without frequencies anchors nothing; clear() forgets the anchors.
+    bare = LocalMap(0.1, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                    anchor_smoothness=0.75)
+    for x in (0.0, 10.0):
+        points, T, _ = at(x)
+        bare.add_keyframe(points, T)
+    assert bare.n_anchors == 0
+    maps[0.75].clear()
+    assert maps[0.75].n_anchors == 0 and len(maps[0.75]) == 0
+
+
+def test_anchors_drop_out_of_range_and_yield_a_voxel_to_nothing():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(1.0, 15.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                         anchor_smoothness=0.5)
+    T = np.eye(4)
+    local_map.add_keyframe(np.array([[0.2, 0.5, 0.5]]), T, np.array([1.0]))
+    T2 = T.copy()
+    T2[0, 3] = 0.5
+    local_map.add_keyframe(np.array([[0.7, 0.5, 0.5]]), T2, np.array([1.0]))
+    # The anchor (0.2) is older than the window's point in the same voxel: it stays.
+    assert local_map.points_xyz[:, 0].tolist() == [0.2]
+    T3 = T.copy()
+    T3[0, 3] = 30.0
+    local_map.add_keyframe(np.array([[30.2, 0.5, 0.5]]), T3, np.array([1.0]))
+    assert local_map.points_xyz[:, 0].tolist() == [30.2]  # anchors beyond 15 m not served
+    assert local_map.n_anchors == 1  # the 0.7 point's voxel was already anchored
