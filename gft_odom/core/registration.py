@@ -15,6 +15,19 @@ the prediction or a motion no Jackal can make return the prediction with a `fall
 and an inflated covariance, and the next scan goes on. RegistrationError is raised only for
 malformed input.
 
+The parts, one concern each (`ScanRegistration.register` runs them in turn: predict,
+downsample, deskew, match or re-acquire, trust, update the map, the result):
+
+- here: RegistrationConfig (every parameter), ScanRegistration (the steps, re-acquisition,
+  the reference update), TrustPolicy (fitness against the recent matches, the fallback run)
+- core/motion_model.py: MotionModel (velocity, trusted pose, physical bounds, prediction,
+  plausibility, jumps, loss of track, the twists deskew assumes)
+- core/icp_backend.py: IcpBackend (one ICP call: open3d or the Gauss-Newton solver)
+- core/gauss_newton.py, core/residuals.py: the Gauss-Newton solver and its per-pair residuals
+- core/uncertainty.py: the information of the final pairs and the reported covariance
+- core/local_map.py: the keyframe local map (voxel downsampling too)
+- core/deskew.py: per-point times and motion compensation
+
 Motion model: a velocity (rad/s, m/s) from the last trusted match, extrapolated over the real
 stamp difference and capped by the physical bounds. Plausibility, the velocity and
 re-acquisition are measured from the last trusted pose over the time since it, never from a
@@ -35,20 +48,16 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial.transform import Rotation
 
 from gft_odom.core.constants import SCAN_PERIOD_S
-from gft_odom.core.deskew import (
-    azimuth_time_offsets,
-    deskew_points,
-    planar_delta,
-    twist_from_delta,
-)
-from gft_odom.core.gauss_newton import GaussNewtonICP, IcpResult
-from gft_odom.core.geometry import invert_transform, make_transform, transform_points
+from gft_odom.core.deskew import azimuth_time_offsets, deskew_points
+from gft_odom.core.geometry import invert_transform, transform_points
+from gft_odom.core.icp_backend import RECOVERY_ITERATIONS_FACTOR as RECOVERY_ITERATIONS_FACTOR
+from gft_odom.core.icp_backend import IcpBackend
 from gft_odom.core.local_map import (
     KEYFRAME_EVICTIONS,
     VOXEL_KEEPS,
@@ -56,16 +65,17 @@ from gft_odom.core.local_map import (
     to_cloud,
     voxel_downsample_indices,
 )
-from gft_odom.core.residuals import (
-    RESIDUAL_MODELS,
-    ROUGH_RESIDUALS,
-    make_residual_model,
-    smoothness_from_nu,
-)
+from gft_odom.core.motion_model import MotionModel
+from gft_odom.core.motion_model import delta_of_twist as delta_of_twist
+from gft_odom.core.motion_model import scale_delta as scale_delta
+from gft_odom.core.motion_model import transform_magnitude as transform_magnitude
+from gft_odom.core.motion_model import twist_of as twist_of
+from gft_odom.core.residuals import RESIDUAL_MODELS, ROUGH_RESIDUALS, smoothness_from_nu
+from gft_odom.core.uncertainty import PoseUncertainty, icp_information, world_information
+from gft_odom.core.uncertainty import in_world_axes as in_world_axes
 from gft_odom.errors import ConfigError, RegistrationError
 
 log = logging.getLogger(__name__)
-o3d_reg = o3d.pipelines.registration
 
 MODES = ('default', 'paper')
 # What a keyframe adds to the local map: the registration's downsampled points, or the whole
@@ -78,8 +88,6 @@ VOXEL_PRIORITIES = ('first', 'smoothest')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
             'fallback_diverged', 'fallback_implausible', 'fallback_degenerate')
-# Re-acquisition's fine ICP may iterate this many times longer than a normal match.
-RECOVERY_ITERATIONS_FACTOR = 4
 # Matches whose median fitness min_relative_fitness refers to (and the fewest it needs).
 RECENT_FITNESS_WINDOW = 10
 RECENT_FITNESS_MIN = 3
@@ -342,37 +350,6 @@ class RegistrationResult:
         return self.status.startswith('fallback')
 
 
-def scale_delta(T: np.ndarray, factor: float) -> np.ndarray:
-    """The rigid motion `T` extrapolated to `factor` times its duration (constant twist)."""
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(
-        Rotation.from_matrix(T[:3, :3]).as_rotvec() * factor).as_matrix()
-    out[:3, 3] = T[:3, 3] * factor
-    return out
-
-
-def twist_of(T_prev_curr: np.ndarray, dt_s: float) -> np.ndarray:
-    """(rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s and m/s of a motion lasting `dt_s`."""
-    omega, velocity = twist_from_delta(T_prev_curr, dt_s)
-    return np.r_[omega, velocity]
-
-
-def transform_magnitude(T: np.ndarray) -> tuple[float, float]:
-    """(translation m, rotation angle rad) of a rigid transform."""
-    cos_angle = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(T[:3, 3])), float(np.arccos(cos_angle))
-
-
-def _kernel(name: str, scale_m: float):
-    if name == 'tukey':
-        return o3d_reg.TukeyLoss(scale_m)
-    if name == 'huber':
-        return o3d_reg.HuberLoss(scale_m)
-    if name == 'cauchy':
-        return o3d_reg.CauchyLoss(scale_m)
-    return o3d_reg.L2Loss()
-
-
 def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
     """The local map of default mode, from the `map_*` / keyframe fields."""
     return LocalMap(
@@ -385,60 +362,116 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
         anchor_smoothness=cfg.map_anchor_smoothness if cfg.map_anchors else None)
 
 
-def in_world_axes(matrix_6x6: np.ndarray, R_world_target: np.ndarray) -> np.ndarray:
-    """A (6, 6) covariance or information of (translation, rotation) moved to world axes."""
-    rotate = np.zeros((6, 6))
-    rotate[:3, :3] = rotate[3:, 3:] = R_world_target
-    return rotate @ matrix_6x6 @ rotate.T
+class TrustPolicy:
+    """Whether a match's fitness is trusted, and the run of fallbacks that ends tracking.
+
+    A fitness is judged against the recent trusted matches as well as `min_fitness`:
+    scan-to-map fitness is steady, and a wrong fit near the prediction can still pass the
+    absolute bound.
+    """
+
+    def __init__(self, config: RegistrationConfig):
+        self.config = config
+        self.reset()
+
+    def reset(self) -> None:
+        """No match yet, no fallback."""
+        self.recent_fitness: deque[float] = deque(maxlen=RECENT_FITNESS_WINDOW)  # trusted
+        self.n_fallbacks = 0
+        self.consecutive_fallbacks = 0
+
+    def relatively_unfit(self, fitness: float) -> bool:
+        """Below `min_relative_fitness` x the median fitness of the recent trusted matches."""
+        return (len(self.recent_fitness) >= RECENT_FITNESS_MIN and fitness
+                < self.config.min_relative_fitness * float(np.median(self.recent_fitness)))
+
+    def trusted(self, fitness: float | None) -> None:
+        """A trusted pose ends the fallback run; a match's `fitness` joins the recent ones."""
+        if fitness is not None:
+            self.recent_fitness.append(fitness)
+        self.consecutive_fallbacks = 0
+
+    def fell_back(self) -> bool:
+        """Count a fallback; True once the run is long enough to drop the velocity."""
+        self.n_fallbacks += 1
+        self.consecutive_fallbacks += 1
+        return self.consecutive_fallbacks >= self.config.max_consecutive_fallbacks
 
 
-def delta_of_twist(twist: np.ndarray, dt_s: float) -> np.ndarray:
-    """The rigid motion of a constant twist (rot rad/s, lin m/s) lasting `dt_s`."""
-    return make_transform(Rotation.from_rotvec(twist[:3] * dt_s).as_matrix(), twist[3:] * dt_s)
+class Match(NamedTuple):
+    """What matching (or re-acquiring) one scan found; the pose is the prediction's unless
+    trusted."""
+
+    status: str
+    T_world_sensor: np.ndarray
+    fitness: float
+    rmse: float
+    information: np.ndarray | None  # in the target's axes; None unless trusted
+    velocity: np.ndarray | None = None  # re-acquisition: the velocity it leaves behind
+
+
+@dataclass
+class _Sweep:
+    """One scan on its way through `register`: the whole scan and what the steps make of it."""
+
+    points_xyz: np.ndarray  # (N, 3) the whole scan, sensor frame
+    time_offset_s: np.ndarray | None  # (N,) per-point times from the bag, if any
+    nu: np.ndarray | None  # (N,) per-point graph frequency, if any
+    keep: np.ndarray | None = None  # indices of the downsampled points
+    source_xyz: np.ndarray | None = None  # the points ICP matches (downsampled, deskewed)
+    point_smoothness: np.ndarray | None = None  # theirs, as the map remembers it (or None)
+    offsets_s: np.ndarray | None = None  # (N,) point times; set only when deskewed
+    dt_s: float = 0.0  # since the previous scan
+    scan_motion: np.ndarray | None = None  # its own motion, when re-deskewed with it
+    map_motion: np.ndarray | None = None  # the motion the re-deskewed points assume
+
+    @property
+    def n_used(self) -> int:
+        """How many points ICP matches."""
+        return int(self.source_xyz.shape[0])
+
+
+def _delegated(part: str, name: str, settable: bool = False) -> property:
+    """`name` of one of ScanRegistration's parts, readable where callers always found it."""
+    def get(self):
+        return getattr(getattr(self, part), name)
+
+    def put(self, value) -> None:
+        setattr(getattr(self, part), name, value)
+    return property(get, put if settable else None, doc=f'`self.{part}.{name}`')
 
 
 class ScanRegistration:
     """Registers consecutive scans and keeps the odometry state (pose, velocity, local map)."""
 
+    # The parts' state and checks, where callers and tests have always found them.
+    T_world_sensor = _delegated('motion', 'T_world_sensor')
+    T_world_trusted = _delegated('motion', 'T_world_trusted')
+    trusted_stamp_ns = _delegated('motion', 'trusted_stamp_ns')
+    last_stamp_ns = _delegated('motion', 'last_stamp_ns')
+    velocity = _delegated('motion', 'velocity', settable=True)
+    recovering = _delegated('motion', 'recovering')
+    last_implied_rates = _delegated('motion', 'last_implied_rates')
+    capped = _delegated('motion', 'capped')
+    predicted_delta = _delegated('motion', 'predicted_delta')
+    is_plausible = _delegated('motion', 'is_plausible')
+    n_fallbacks = _delegated('trust', 'n_fallbacks')
+    consecutive_fallbacks = _delegated('trust', 'consecutive_fallbacks')
+    min_var = _delegated('uncertainty', 'min_var')
+    fallback_var = _delegated('uncertainty', 'fallback_var')
+
     def __init__(self, config: RegistrationConfig = RegistrationConfig()):
         config.validate()
         self.config = config
         self.mode = config.mode
-        self.estimation = config.resolved_estimation
-        self.criteria = o3d_reg.ICPConvergenceCriteria(
-            relative_fitness=config.convergence_relative,
-            relative_rmse=config.convergence_relative, max_iteration=config.max_iterations)
-        # Re-acquisition starts further away: more iterations to converge.
-        self._recovery_criteria = o3d_reg.ICPConvergenceCriteria(
-            relative_fitness=config.convergence_relative,
-            relative_rmse=config.convergence_relative,
-            max_iteration=RECOVERY_ITERATIONS_FACTOR * config.max_iterations)
-        # The paper's ICP is plain least squares; ours is robust.
-        kernel_name = 'none' if config.mode == 'paper' else config.robust_kernel
-        self.kernel = _kernel(kernel_name, config.robust_kernel_scale_m)
         self.local_map = local_map_from_config(config)
-        self.local_map.with_normals = self.estimation == 'point_to_plane'
-        self.local_map.with_covariances = self.estimation == 'gicp'
-        # Gauss-Newton (default mode): per-pair residual types and weights.
-        self.solver = None
-        if config.solver == 'gauss_newton' and config.mode == 'default':
-            self.solver = GaussNewtonICP(
-                make_residual_model(config.residual_model, config.rough_residual,
-                                    config.rough_weight),
-                config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
-                config.convergence_m, config.frequency_affinity_m)
-            self.local_map.with_normals = True
-            if config.residual_model == 'planarity':
-                self.local_map.smoothness_variation = config.rough_surface_variation
-                self.local_map.with_covariances = True  # computed once per map rebuild
-        # Smoothness of this scan's downsampled points (residual_model 'frequency'), and the
-        # same with unknown kept NaN, what the map remembers (frequency_affinity_m, anchors).
-        self._source_smoothness: np.ndarray | None = None
-        self._point_smoothness: np.ndarray | None = None
+        self.icp = IcpBackend(config, self.local_map)  # also sets what the map computes
+        self.estimation = self.icp.estimation
+        # Paper mode has no map to re-acquire against: it never drops the velocity.
+        self.motion = MotionModel(config, track_loss=config.mode == 'default')
+        self.trust = TrustPolicy(config)
+        self.uncertainty = PoseUncertainty.from_config(config)
         self.deskew = config.deskew and config.mode == 'default'
-        self.min_var = np.array([config.min_std_m ** 2] * 3 + [config.min_std_rad ** 2] * 3)
-        self.fallback_var = np.array(
-            [config.fallback_std_m ** 2] * 3 + [config.fallback_std_rad ** 2] * 3)
         self.reset()
 
     @classmethod
@@ -448,22 +481,9 @@ class ScanRegistration:
 
     def reset(self) -> None:
         """Forget everything: the next scan is the first again."""
-        self.T_world_sensor = np.eye(4)
-        # The last trusted pose and its stamp: fallbacks only extrapolate, so plausibility
-        # and re-acquisition are measured from here, over the time since it.
-        self.T_world_trusted = np.eye(4)
-        self.trusted_stamp_ns: int | None = None
-        # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
-        self.velocity = np.zeros(6)
-        self._twists: deque[np.ndarray] = deque(maxlen=self.config.deskew_velocity_window)
-        self._fitness: deque[float] = deque(maxlen=RECENT_FITNESS_WINDOW)  # trusted matches
-        self.last_stamp_ns: int | None = None
+        self.motion.reset()
+        self.trust.reset()
         self.n_registered = 0
-        self.n_fallbacks = 0
-        self.consecutive_fallbacks = 0
-        # Re-acquiring after a gap or a run of fallbacks; the velocity before the loss.
-        self.recovering = False
-        self._velocity_before_loss = np.zeros(6)
         self._prev_scan: o3d.geometry.PointCloud | None = None  # paper mode's target
         self.local_map.clear()
         self._map_provisional = False
@@ -475,76 +495,6 @@ class ScanRegistration:
             return self._prev_scan is not None
         return len(self.local_map) > 0
 
-    def capped(self, twist: np.ndarray) -> np.ndarray:
-        """`twist` scaled down (direction kept) to the speed and rotation-rate bounds."""
-        cfg = self.config
-        out = np.array(twist, dtype=float)
-        for part, bound in ((slice(0, 3), cfg.max_yaw_rate_rps), (slice(3, 6), cfg.max_speed_mps)):
-            norm = float(np.linalg.norm(out[part]))
-            if norm > bound:
-                out[part] *= bound / norm
-        return out
-
-    def predicted_delta(self, dt_s: float) -> np.ndarray:
-        """T_prev_curr the motion model expects `dt_s` after the last scan (none if <= 0)."""
-        return delta_of_twist(self.velocity, dt_s) if dt_s > 0.0 else np.eye(4)
-
-    def is_plausible(self, T_prev_curr: np.ndarray, dt_s: float) -> bool:
-        """Could the robot have made this motion in `dt_s` (bounds times 1 + margin)?"""
-        cfg = self.config
-        distance_m, angle_rad = transform_magnitude(T_prev_curr)
-        slack = (1.0 + cfg.motion_margin) * max(dt_s, 0.0)
-        # What the motion implies, for a caller that reports a refusal (the bounds watch).
-        self.last_implied_rates = ((distance_m / dt_s, angle_rad / dt_s) if dt_s > 0.0
-                                   else (float('inf'), float('inf')))
-        return (distance_m <= cfg.max_speed_mps * slack
-                and angle_rad <= cfg.max_yaw_rate_rps * slack)
-
-    def _since_trusted(self, stamp_ns: int, T_world_est: np.ndarray) -> tuple[np.ndarray, float]:
-        """The motion from the last trusted pose to `T_world_est` and the time it took (the
-        previous scan's unless registrations fell back since). A stamp not after the trusted
-        one (the API tolerates it, the pipeline refuses it) is measured from the previous pose
-        over the stamp step, as before the trusted pose existed."""
-        if self.trusted_stamp_ns is None or int(stamp_ns) <= self.trusted_stamp_ns:
-            dt_s = (self.config.scan_period_s if self.last_stamp_ns is None
-                    else (int(stamp_ns) - self.last_stamp_ns) * 1e-9)
-            return invert_transform(self.T_world_sensor) @ T_world_est, dt_s
-        return (invert_transform(self.T_world_trusted) @ T_world_est,
-                (int(stamp_ns) - self.trusted_stamp_ns) * 1e-9)
-
-    def _scan_motion(self, stamp_ns: int, T_world_new: np.ndarray, dt_s: float) -> np.ndarray:
-        """The motion over this scan's `dt_s` that deskew assumes: the mean motion since the
-        last trusted pose, so a pose recovered after fallbacks is not read as one jump."""
-        motion, elapsed_s = self._since_trusted(stamp_ns, T_world_new)
-        if not elapsed_s > 0.0:
-            return invert_transform(self.T_world_sensor) @ T_world_new
-        return delta_of_twist(twist_of(motion, elapsed_s), dt_s)
-
-    def _step_s(self, stamp_ns: int) -> float:
-        if self.last_stamp_ns is None:
-            return self.config.scan_period_s
-        dt_s = (int(stamp_ns) - self.last_stamp_ns) * 1e-9
-        if not dt_s > 0.0:
-            log.warning('scan stamp %d is not after the previous one (%d): predicting no motion',
-                        stamp_ns, self.last_stamp_ns)
-        return dt_s
-
-    def _lose_track(self, why: str) -> None:
-        """Stop extrapolating the velocity; re-acquire the next scan against the map."""
-        if not self.recovering:
-            log.info('re-acquiring against the map: %s', why)
-            self._velocity_before_loss = self.velocity.copy()
-        self.recovering = True
-        self.velocity = np.zeros(6)
-        self._twists.clear()
-
-    def _begin(self, stamp_ns: int) -> tuple[float, np.ndarray]:
-        """Time step since the last scan and the predicted pose (a gap drops the velocity)."""
-        dt_s = self._step_s(stamp_ns)
-        if self.n_registered and dt_s > self.config.max_gap_s and self.mode == 'default':
-            self._lose_track(f'gap of {dt_s:.2f} s in the scan stamps')
-        return dt_s, self.T_world_sensor @ self.predicted_delta(dt_s)
-
     def advance_with_prediction(self, stamp_ns: int,
                                 status: str = 'fallback_degenerate') -> RegistrationResult:
         """Take the motion prediction as the pose at `stamp_ns` without matching anything:
@@ -553,8 +503,8 @@ class ScanRegistration:
             raise RegistrationError(f'advance_with_prediction needs a fallback status from '
                                     f'{STATUSES}, got {status!r}')
         t_start = time.perf_counter()
-        dt_s, T_pred = self._begin(stamp_ns)
-        return self._finish(stamp_ns, dt_s, status, T_pred, 0, t_start, {})
+        _, T_pred = self.motion.predict(stamp_ns)
+        return self._finish(stamp_ns, status, T_pred, t_start, {})
 
     def register(self, points_xyz: np.ndarray, stamp_ns: int,
                  time_offset_s: np.ndarray | None = None,
@@ -563,150 +513,251 @@ class ScanRegistration:
 
         `nu` (N,): every point's graph frequency (NaN: none), read by residual_model
         'frequency'; without it every pair is weighted alike."""
-        points_xyz, time_offset_s, nu = self._check_input(points_xyz, time_offset_s, nu)
+        sweep = _Sweep(*self._check_input(points_xyz, time_offset_s, nu))
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
+        # 1. Predict: the velocity over the real stamp difference, capped (a gap drops it).
+        sweep.dt_s, T_pred = self.motion.predict(stamp_ns)
+        # 2. Downsample: one point per voxel, which keeps its time and frequency.
+        self._downsample(sweep, timings)
+        # 3. Deskew those points with the recent velocity.
+        self._deskew(sweep, timings)
+        # 4. Match against the reference or re-acquire (the first scan and too few points
+        # are not matched).
+        status, T_new, match, refused = self._match_or_reacquire(sweep, T_pred, stamp_ns,
+                                                                 timings)
+        # 5. A trusted scan is deskewed again with its own motion: the map gets that cloud.
+        self._redeskew(sweep, stamp_ns, status, T_new)
+        # 6-8. Trust the pose or count a fallback, update the map, the result.
+        result = self._finish(stamp_ns, status, T_new, t_start, timings, sweep, match)
+        return self._with_extras(result, sweep, refused)
 
-        # 1. Velocity prediction over the real stamp difference, capped by the bounds.
-        dt_s, T_pred = self._begin(stamp_ns)
+    # ------------------------------------------------------------ the steps
 
-        # 2. Downsample (first point per voxel keeps its time), then deskew those points.
+    def _downsample(self, sweep: _Sweep, timings: dict[str, float]) -> None:
+        """The source points (one per voxel: the first in scan order, or the smoothest) and
+        their smoothness for the solver and the map."""
         t0 = time.perf_counter()
-        priority = nu if self.config.voxel_priority == 'smoothest' else None
-        keep = voxel_downsample_indices(points_xyz, self.config.voxel_size_m, priority)
-        source_xyz = points_xyz[keep]
-        self._source_smoothness = (
-            smoothness_from_nu(nu[keep], self.config.smooth_nu)
-            if nu is not None and self.config.residual_model == 'frequency' else None)
-        remembered = nu is not None and (self.config.map_anchors or (
-            self.solver is not None and self.config.frequency_affinity_m > 0.0))
-        self._point_smoothness = (smoothness_from_nu(nu[keep], self.config.smooth_nu,
+        cfg, nu = self.config, sweep.nu
+        priority = nu if cfg.voxel_priority == 'smoothest' else None
+        sweep.keep = voxel_downsample_indices(sweep.points_xyz, cfg.voxel_size_m, priority)
+        sweep.source_xyz = sweep.points_xyz[sweep.keep]
+        source_smoothness = (smoothness_from_nu(nu[sweep.keep], cfg.smooth_nu)
+                             if nu is not None and cfg.residual_model == 'frequency' else None)
+        # The map remembers the smoothness of its points (unknown kept NaN) when it is read.
+        remembered = nu is not None and (cfg.map_anchors or (
+            self.icp.solver is not None and cfg.frequency_affinity_m > 0.0))
+        sweep.point_smoothness = (smoothness_from_nu(nu[sweep.keep], cfg.smooth_nu,
                                                      unknown=np.nan) if remembered else None)
+        self.icp.use_smoothness(source_smoothness, sweep.point_smoothness)
         timings['downsample'] = time.perf_counter() - t0
+
+    def _deskew(self, sweep: _Sweep, timings: dict[str, float]) -> None:
+        """Deskew the source points with the mean twist of the recent trusted scans."""
         t0 = time.perf_counter()
-        offsets_s = None
-        if self.deskew and source_xyz.shape[0]:
-            offsets_s = self._time_offsets(points_xyz, time_offset_s)
-            source_xyz = deskew_points(source_xyz, offsets_s[keep], self._deskew_motion(dt_s),
-                                       dt_s)
+        if self.deskew and sweep.source_xyz.shape[0]:
+            sweep.offsets_s = self._time_offsets(sweep.points_xyz, sweep.time_offset_s)
+            sweep.source_xyz = deskew_points(sweep.source_xyz, sweep.offsets_s[sweep.keep],
+                                             self.motion.deskew_motion(sweep.dt_s), sweep.dt_s)
         timings['deskew'] = time.perf_counter() - t0
 
-        # 3. Decide: first scan, too few points, re-acquisition or ICP against the reference.
-        n_used = int(source_xyz.shape[0])
-        match = None
+    def _match_or_reacquire(self, sweep: _Sweep, T_pred: np.ndarray, stamp_ns: int,
+                            timings: dict[str, float]):
+        """(status, pose, match or None, refused rates): the first scan, too few points,
+        re-acquisition after a loss, or ICP against the reference (retried the way
+        re-acquisition does when it fails and `retry_failed_match`)."""
+        n_used = sweep.n_used
         refused = (None, None)  # the rates a match refused as implausible implied
         if n_used < self.config.min_points:
-            status, T_new = 'fallback_too_few_points', T_pred
             if not self.has_reference:
                 log.warning('scan %d has %d points after downsampling (< min_points %d) and '
                             'there is no reference yet', stamp_ns, n_used,
                             self.config.min_points)
-        elif not self.has_reference:
-            status, T_new = 'first', (T_pred if self.n_registered else np.eye(4))
+            return 'fallback_too_few_points', T_pred, None, refused
+        if not self.has_reference:
+            return 'first', (T_pred if self.n_registered else np.eye(4)), None, refused
+        t0 = time.perf_counter()
+        if self.motion.recovering and self.mode == 'default':
+            match = self._reacquire(sweep.source_xyz, T_pred, stamp_ns)
         else:
-            t0 = time.perf_counter()
-            if self.recovering and self.mode == 'default':
-                match = self._reacquire(source_xyz, T_pred, stamp_ns)
-            else:
-                self.last_implied_rates = (None, None)  # set by is_plausible in the match
-                match = self._match(source_xyz, T_pred, stamp_ns)
-                refused = (self.last_implied_rates if match[0] == 'fallback_implausible'
-                           else (None, None))
-                if (match[0] in RETRIED_STATUSES and self.mode == 'default'
-                        and self.config.retry_failed_match):
-                    retried = self._reacquire(source_xyz, T_pred, stamp_ns, retry=True)
-                    match = retried if retried[0] == 'recovered' else match
-            status, T_new = match[0], match[1]
-            timings['icp'] = time.perf_counter() - t0
+            self.motion.last_implied_rates = (None, None)  # set by is_plausible in the match
+            match = Match(*self._match(sweep.source_xyz, T_pred, stamp_ns))
+            if match.status == 'fallback_implausible':
+                refused = self.motion.last_implied_rates
+            if (match.status in RETRIED_STATUSES and self.mode == 'default'
+                    and self.config.retry_failed_match):
+                retried = self._reacquire(sweep.source_xyz, T_pred, stamp_ns, retry=True)
+                match = retried if retried.status == 'recovered' else match
+        timings['icp'] = time.perf_counter() - t0
+        return match.status, match.T_world_sensor, match, refused
 
-        # 4. Re-deskew a trusted scan with its own motion: the map gets the better cloud.
-        # This scan's motion, as deskew assumes it (before _finish moves the trusted pose);
-        # only worked out when the scan is deskewed (offsets_s is set only then).
-        T_prev_curr = (self._scan_motion(stamp_ns, T_new, dt_s)
-                       if offsets_s is not None and status in ('ok', 'recovered')
-                       and dt_s > 0.0 else None)
-        redeskew = T_prev_curr is not None
-        if redeskew:
-            source_xyz = deskew_points(points_xyz[keep], offsets_s[keep],
-                                       self._deskew_motion(dt_s, T_prev_curr), dt_s)
+    def _redeskew(self, sweep: _Sweep, stamp_ns: int, status: str, T_new: np.ndarray) -> None:
+        """Deskew a trusted scan again with its own motion (only when it was deskewed)."""
+        if sweep.offsets_s is None or status not in ('ok', 'recovered') or not sweep.dt_s > 0.0:
+            return
+        # This scan's motion as deskew assumes it, worked out before the trusted pose moves.
+        sweep.scan_motion = self.motion.scan_motion(stamp_ns, T_new, sweep.dt_s)
+        sweep.map_motion = self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion)
+        sweep.source_xyz = deskew_points(sweep.points_xyz[sweep.keep],
+                                         sweep.offsets_s[sweep.keep], sweep.map_motion,
+                                         sweep.dt_s)
 
-        def keyframe_xyz() -> tuple[np.ndarray, np.ndarray | None]:
-            """The points a keyframe adds, and their smoothness when the map keeps it."""
-            if self.config.map_points_from == 'registration' or source_xyz.shape[0] == 0:
-                return source_xyz, self._point_smoothness
-            dense = voxel_downsample_indices(points_xyz, self.config.map_voxel_size_m)
-            smooth = (None if self._point_smoothness is None else smoothness_from_nu(
-                nu[dense], self.config.smooth_nu, unknown=np.nan))
-            if not redeskew:
-                return points_xyz[dense], smooth
-            return deskew_points(points_xyz[dense], offsets_s[dense],
-                                 self._deskew_motion(dt_s, T_prev_curr), dt_s), smooth
-        result = self._finish(stamp_ns, dt_s, status, T_new, n_used, t_start, timings,
-                              source_xyz, match, keyframe_xyz)
-        if status == 'fallback_implausible':
-            result.refused_speed_mps, result.refused_rate_rps = refused
-        if self.config.output_deskewed_points:
-            result.deskewed_points = points_xyz.copy() if offsets_s is None else deskew_points(
-                points_xyz, offsets_s,
-                self._deskew_motion(dt_s, T_prev_curr), dt_s)
-        return result
-
-    def _finish(self, stamp_ns: int, dt_s: float, status: str, T_new: np.ndarray, n_used: int,
-                t_start: float, timings: dict[str, float],
-                source_xyz: np.ndarray | None = None, match=None,
-                keyframe_xyz=None) -> RegistrationResult:
-        """Update pose, velocity, fallback run and reference; build the result."""
+    def _finish(self, stamp_ns: int, status: str, T_new: np.ndarray, t_start: float,
+                timings: dict[str, float], sweep: _Sweep | None = None,
+                match: Match | None = None) -> RegistrationResult:
+        """Trust the pose (motion model, fitness) or count a fallback, update the reference,
+        move the pose; the result."""
         t0 = time.perf_counter()
         fitness, rmse, information = (match[2], match[3], match[4]) if match else (0.0, 0.0, None)
         # Axes the ICP information is expressed in: world (map) or the previous scan (paper).
         R_world_target = self.T_world_trusted[:3, :3] if self.mode == 'paper' else np.eye(3)
         T_prev_curr = invert_transform(self.T_world_sensor) @ T_new
+        n_used = 0 if sweep is None else sweep.n_used
         if status in TRUSTED_STATUSES:
             # The velocity spans the motion since the last trusted pose: after fallbacks the
             # previous pose was extrapolated, and its error is not this scan's motion.
-            motion, elapsed_s = self._since_trusted(stamp_ns, T_new)
-            self.T_world_trusted = T_new.copy()
-            self.trusted_stamp_ns = int(stamp_ns)
-            self._update_reference(source_xyz, T_new, status, keyframe_xyz)
-            if match is not None:
-                self._fitness.append(fitness)
-            self.consecutive_fallbacks = 0
-            if status == 'ok' and 0.0 < elapsed_s <= self.config.max_gap_s:
-                self.velocity = self.capped(twist_of(motion, elapsed_s))
-                self._twists.append(self.velocity)
-            elif status == 'recovered':
-                self.velocity = match[5]  # the velocity of the guess that won
-            self.recovering = False
+            self.motion.trust(stamp_ns, T_new, status, None if match is None else match[5])
+            self.trust.trusted(None if match is None else fitness)
+            self._update_reference(sweep, T_new, status)
         else:
-            self.n_fallbacks += 1
-            self.consecutive_fallbacks += 1
             log.debug('scan %d: %s (fitness %.3f, %d points)', stamp_ns, status, fitness, n_used)
-            if (self.consecutive_fallbacks >= self.config.max_consecutive_fallbacks
-                    and self.mode == 'default'):
-                self._lose_track(f'{self.consecutive_fallbacks} fallbacks in a row')
-        self.T_world_sensor = T_new
-        self.last_stamp_ns = int(stamp_ns)
+            if self.trust.fell_back():
+                self.motion.lose_track(f'{self.trust.consecutive_fallbacks} fallbacks in a row')
+        self.motion.advance(stamp_ns, T_new)
         self.n_registered += 1
         timings['update'] = time.perf_counter() - t0
         timings['total'] = time.perf_counter() - t_start
         return RegistrationResult(
             T_world_sensor=T_new.copy(), T_prev_curr=T_prev_curr, fitness=fitness,
             inlier_rmse_m=rmse, n_points_used=n_used, status=status,
-            covariance=self._covariance(status, information, R_world_target),
+            covariance=self.uncertainty.covariance(status, information, R_world_target),
             timings_s=timings, twist=self.velocity.copy(),
-            information=self._rotated_information(status, information, R_world_target))
+            information=world_information(status, information, R_world_target))
 
-    def _deskew_motion(self, dt_s: float, latest: np.ndarray | None = None) -> np.ndarray:
-        """The motion over `dt_s` that deskew assumes: the mean twist of the recent trusted
-        scans (with `latest`, this scan's own estimate, as the newest), planar by default."""
-        window = self.config.deskew_velocity_window
-        twists = list(self._twists)
-        if latest is not None and dt_s > 0.0:
-            twists = twists[len(twists) - window + 1:] + [twist_of(latest, dt_s)]
-        if not twists or not dt_s > 0.0:
-            return np.eye(4)
-        motion = delta_of_twist(np.mean(twists[-window:], axis=0), dt_s)
-        return planar_delta(motion) if self.config.deskew_planar else motion
+    def _with_extras(self, result: RegistrationResult, sweep: _Sweep,
+                     refused: tuple) -> RegistrationResult:
+        """The rates a refused match implied; the deskewed scan when asked for (with the
+        twists as this scan left them)."""
+        if result.status == 'fallback_implausible':
+            result.refused_speed_mps, result.refused_rate_rps = refused
+        if self.config.output_deskewed_points:
+            result.deskewed_points = (
+                sweep.points_xyz.copy() if sweep.offsets_s is None else deskew_points(
+                    sweep.points_xyz, sweep.offsets_s,
+                    self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion), sweep.dt_s))
+        return result
+
+    # ------------------------------------------------------------ matching
+
+    def _match(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int) -> Match:
+        """ICP from the prediction (default) or from identity (paper); then sanity checks:
+        finite, fitness, physically possible and close to the prediction, both measured from
+        the last trusted pose (after fallbacks the previous pose is only a prediction)."""
+        cfg = self.config
+        source = to_cloud(source_xyz)
+        if self.mode == 'paper':
+            target = self._prev_scan
+            init = np.eye(4)  # scan-to-scan, relative to the last trusted scan (the target)
+        else:
+            target = self.local_map.cloud
+            init = T_pred
+        result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m)
+        T_est = np.asarray(result.transformation)
+        if self.mode == 'paper':
+            T_est = self.T_world_trusted @ T_est
+        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
+        if not np.all(np.isfinite(T_est)):
+            return Match('fallback_diverged', T_pred, fitness, rmse, None)
+        if fitness < cfg.min_fitness or (self.mode == 'default'
+                                         and self.trust.relatively_unfit(fitness)):
+            return Match('fallback_low_fitness', T_pred, fitness, rmse, None)
+        motion, elapsed_s = self.motion.since_trusted(stamp_ns, T_est)
+        if not self.motion.is_plausible(motion, elapsed_s):
+            log.debug('ICP implies motion beyond the bounds over %.3f s', elapsed_s)
+            return Match('fallback_implausible', T_pred, fitness, rmse, None)
+        if self.motion.jumped(T_pred, T_est, stamp_ns):
+            return Match('fallback_diverged', T_pred, fitness, rmse, None)
+        return Match('ok', T_est, fitness, rmse,
+                     icp_information(source_xyz, target, result, rmse))
+
+    def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
+                   retry: bool = False) -> Match:
+        """Re-acquire against the map from a few initial guesses (the motion model's, from
+        the last trusted pose). From each: a coarse ICP with a widened correspondence
+        distance, then the normal one with more iterations. The plausible fit with the best
+        fitness wins; no jump check (the guesses are rough).
+
+        `retry`: a second chance for a scan whose match from the prediction failed, with the
+        current velocity as the one before the loss; the fit must pass every check a match
+        does (relative fitness, the jump from the prediction too), and the velocity becomes
+        the motion it implies."""
+        cfg = self.config
+        source, target = to_cloud(source_xyz), self.local_map.cloud
+        wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
+        best, status = None, 'fallback_low_fitness'
+        for velocity, init in self.motion.reacquisition_guesses(stamp_ns, retry):
+            coarse = self.icp.register(source, target, init, wide_m)
+            result = self.icp.register(source, target, np.asarray(coarse.transformation),
+                                       cfg.max_correspondence_distance_m, recovery=True)
+            T_est = np.asarray(result.transformation)
+            if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
+                continue
+            if retry and (self.trust.relatively_unfit(float(result.fitness))
+                          or self.motion.jumped(T_pred, T_est, stamp_ns)):
+                continue
+            if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
+                status = 'fallback_implausible'
+                continue
+            if best is None or result.fitness > best[0].fitness:
+                best = (result, T_est, velocity)
+        if best is None:
+            return Match(status, T_pred, 0.0, 0.0, None)
+        result, T_est, velocity = best
+        if retry:
+            implied = self.motion.implied_velocity(stamp_ns, T_est)
+            velocity = velocity if implied is None else implied
+        rmse = float(result.inlier_rmse)
+        return Match('recovered', T_est, float(result.fitness), rmse,
+                     icp_information(source_xyz, target, result, rmse), velocity)
+
+    # ------------------------------------------------------------ the reference
+
+    def _update_reference(self, sweep: _Sweep | None, T_world_sensor: np.ndarray,
+                          status: str) -> None:
+        """Paper: the scan becomes the target. Default: a keyframe when due, its points from
+        `_keyframe_points` (only built then, with their smoothness)."""
+        if sweep is None:
+            return
+        if self.mode == 'paper':
+            self._prev_scan = to_cloud(sweep.source_xyz)
+            return
+        if status == 'first':
+            # Its motion is unknown, so it could not be deskewed: replaced by the first match.
+            self._map_provisional = self.deskew
+        elif self._map_provisional:
+            self.local_map.clear()
+            self._map_provisional = False
+        if self.local_map.needs_keyframe(T_world_sensor) or len(self.local_map) == 0:
+            points, smoothness = self._keyframe_points(sweep)
+            self.local_map.add_keyframe(transform_points(T_world_sensor, points), T_world_sensor,
+                                        smoothness)
+
+    def _keyframe_points(self, sweep: _Sweep) -> tuple[np.ndarray, np.ndarray | None]:
+        """The points a keyframe adds, and their smoothness when the map keeps it: the
+        registration's, or (map_points_from 'scan') the whole scan at the map voxel,
+        deskewed as the registration's were."""
+        cfg = self.config
+        if cfg.map_points_from == 'registration' or sweep.source_xyz.shape[0] == 0:
+            return sweep.source_xyz, sweep.point_smoothness
+        dense = voxel_downsample_indices(sweep.points_xyz, cfg.map_voxel_size_m)
+        smooth = (None if sweep.point_smoothness is None else smoothness_from_nu(
+            sweep.nu[dense], cfg.smooth_nu, unknown=np.nan))
+        if sweep.map_motion is None:
+            return sweep.points_xyz[dense], smooth
+        return deskew_points(sweep.points_xyz[dense], sweep.offsets_s[dense], sweep.map_motion,
+                             sweep.dt_s), smooth
+
+    # ------------------------------------------------------------ input
 
     def _check_input(self, points_xyz, time_offset_s, nu=None):
         points = np.asarray(points_xyz, dtype=float)
@@ -738,188 +789,3 @@ class ScanRegistration:
         return azimuth_time_offsets(points_xyz, self.config.scan_period_s,
                                     self.config.azimuth_stamp_at_sweep_end)
 
-    def _match(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int):
-        """ICP from the prediction (default) or from identity (paper); then sanity checks:
-        finite, fitness, physically possible and close to the prediction, both measured from
-        the last trusted pose (after fallbacks the previous pose is only a prediction)."""
-        cfg = self.config
-        source = to_cloud(source_xyz)
-        if self.mode == 'paper':
-            target = self._prev_scan
-            init = np.eye(4)  # scan-to-scan, relative to the last trusted scan (the target)
-        else:
-            target = self.local_map.cloud
-            init = T_pred
-        result = self._icp(source, target, init, cfg.max_correspondence_distance_m)
-        T_est = np.asarray(result.transformation)
-        if self.mode == 'paper':
-            T_est = self.T_world_trusted @ T_est
-        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
-        if not np.all(np.isfinite(T_est)):
-            return 'fallback_diverged', T_pred, fitness, rmse, None
-        if fitness < cfg.min_fitness or (self.mode == 'default'
-                                         and self._relatively_unfit(fitness)):
-            return 'fallback_low_fitness', T_pred, fitness, rmse, None
-        motion, elapsed_s = self._since_trusted(stamp_ns, T_est)
-        if not self.is_plausible(motion, elapsed_s):
-            log.debug('ICP implies motion beyond the bounds over %.3f s', elapsed_s)
-            return 'fallback_implausible', T_pred, fitness, rmse, None
-        if self._jumped(T_pred, T_est, stamp_ns):
-            return 'fallback_diverged', T_pred, fitness, rmse, None
-        return 'ok', T_est, fitness, rmse, self._icp_information(source_xyz, target, result, rmse)
-
-    def _jumped(self, T_pred: np.ndarray, T_est: np.ndarray, stamp_ns: int) -> bool:
-        """Farther from the prediction than the jump bounds, which grow with the time the
-        prediction has been extrapolated over (since the last trusted pose)."""
-        cfg = self.config
-        jump_m, jump_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
-        allowance = max(1.0, self._since_trusted(stamp_ns, T_est)[1] / cfg.scan_period_s)
-        if (jump_m > cfg.max_translation_jump_m * allowance
-                or jump_rad > cfg.max_rotation_jump_rad * allowance):
-            log.debug('ICP moved %.3f m / %.3f rad away from the prediction', jump_m, jump_rad)
-            return True
-        return False
-
-    def _relatively_unfit(self, fitness: float) -> bool:
-        """Below `min_relative_fitness` x the median fitness of the recent trusted matches."""
-        return (len(self._fitness) >= RECENT_FITNESS_MIN and fitness
-                < self.config.min_relative_fitness * float(np.median(self._fitness)))
-
-    def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
-                   retry: bool = False):
-        """Re-acquire against the map from a few initial guesses, all from the last trusted
-        pose over the time since it: zero motion, the velocity before the loss (capped), and
-        its straight-line part (a turn rate extrapolated over a long gap throws the guess
-        sideways). From each: a coarse ICP with a widened correspondence distance, then the
-        normal one with more iterations. The plausible fit with the best fitness wins; no
-        jump check (the guesses are rough).
-
-        `retry`: a second chance for a scan whose match from the prediction failed, with the
-        current velocity as the one before the loss; the fit must pass every check a match
-        does (relative fitness, the jump from the prediction too), and the velocity becomes
-        the motion it implies."""
-        cfg = self.config
-        source, target = to_cloud(source_xyz), self.local_map.cloud
-        guesses = [np.zeros(6)]
-        before = self.capped(self.velocity if retry else self._velocity_before_loss)
-        if np.any(before):
-            guesses.append(before)
-        if np.any(before[:3]) and np.any(before[3:]):
-            guesses.append(np.r_[0.0, 0.0, 0.0, before[3:]])
-        wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
-        _, elapsed_s = self._since_trusted(stamp_ns, self.T_world_trusted)
-        best, status = None, 'fallback_low_fitness'
-        for velocity in guesses:
-            init = self.T_world_trusted @ delta_of_twist(velocity, max(elapsed_s, 0.0))
-            coarse = self._icp(source, target, init, wide_m)
-            result = self._icp(source, target, np.asarray(coarse.transformation),
-                               cfg.max_correspondence_distance_m, self._recovery_criteria)
-            T_est = np.asarray(result.transformation)
-            if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
-                continue
-            if retry and (self._relatively_unfit(float(result.fitness))
-                          or self._jumped(T_pred, T_est, stamp_ns)):
-                continue
-            if not self.is_plausible(*self._since_trusted(stamp_ns, T_est)):
-                status = 'fallback_implausible'
-                continue
-            if best is None or result.fitness > best[0].fitness:
-                best = (result, T_est, velocity)
-        if best is None:
-            return status, T_pred, 0.0, 0.0, None
-        result, T_est, velocity = best
-        if retry:
-            motion, elapsed_s = self._since_trusted(stamp_ns, T_est)
-            if 0.0 < elapsed_s <= cfg.max_gap_s:
-                velocity = self.capped(twist_of(motion, elapsed_s))
-        rmse = float(result.inlier_rmse)
-        return ('recovered', T_est, float(result.fitness), rmse,
-                self._icp_information(source_xyz, target, result, rmse), velocity)
-
-    def _icp(self, source, target, init, distance_m: float, criteria=None):
-        criteria = self.criteria if criteria is None else criteria
-        if self.solver is not None and target is self.local_map.cloud:
-            return self.solver.register(np.asarray(source.points), self.local_map.target(),
-                                        init, distance_m, self._source_smoothness,
-                                        criteria.max_iteration, self._point_smoothness)
-        if self.estimation == 'gicp':
-            estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
-                self.config.gicp_epsilon, self.kernel)
-            return o3d_reg.registration_generalized_icp(source, target, distance_m, init,
-                                                        estimation, criteria)
-        if self.estimation == 'point_to_plane':
-            if not target.has_normals():
-                target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(
-                    self.local_map.normal_neighbours))
-            estimation = o3d_reg.TransformationEstimationPointToPlane(self.kernel)
-        else:
-            estimation = o3d_reg.TransformationEstimationPointToPoint()
-        return o3d_reg.registration_icp(source, target, distance_m, init, estimation, criteria)
-
-    def _icp_information(self, source_xyz, target, result, rmse) -> np.ndarray | None:
-        """Gauss-Newton information J^T J / rmse^2 of the final pairs, in the target's axes.
-
-        Point-to-plane rows [n, a x n] (a = point relative to the sensor) expose degenerate
-        directions (ground only: x, y, yaw) as small information, hence large variances.
-        Point-to-point rows are [I, -[a]x].
-        """
-        if isinstance(result, IcpResult):  # Gauss-Newton: its own weighted normal matrix
-            return result.information
-        pairs = np.asarray(result.correspondence_set)
-        if pairs.shape[0] < 6:
-            return None
-        R_target_sensor = np.asarray(result.transformation)[:3, :3]
-        a = source_xyz[pairs[:, 0]] @ R_target_sensor.T
-        if target.has_normals():
-            n = np.asarray(target.normals)[pairs[:, 1]]
-            J = np.hstack([n, np.cross(a, n)])
-            H = J.T @ J
-        else:
-            s = a.sum(axis=0)
-            S = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
-            H = np.zeros((6, 6))
-            H[:3, :3] = pairs.shape[0] * np.eye(3)
-            H[:3, 3:] = -S
-            H[3:, :3] = S
-            H[3:, 3:] = np.einsum('ij,ij->', a, a) * np.eye(3) - a.T @ a
-        return H / max(rmse, 1e-3) ** 2
-
-    def _rotated_information(self, status: str, information: np.ndarray | None,
-                             R_world_target: np.ndarray) -> np.ndarray | None:
-        """The match's information in the covariance's axes (None on a fallback)."""
-        if status.startswith('fallback') or information is None:
-            return None
-        return in_world_axes(information, R_world_target)
-
-    def _covariance(self, status: str, information: np.ndarray | None,
-                    R_world_target: np.ndarray) -> np.ndarray:
-        """Fallback: the inflated prior. Match: (information + prior^-1)^-1, floored."""
-        if status.startswith('fallback') or information is None:
-            return np.diag(self.fallback_var)
-        cov = np.linalg.inv(information + np.diag(1.0 / self.fallback_var))
-        cov = in_world_axes(cov, R_world_target)
-        cov = 0.5 * (cov + cov.T)
-        idx = np.arange(6)
-        cov[idx, idx] = np.maximum(cov[idx, idx], self.min_var)
-        return cov
-
-    def _update_reference(self, source_xyz: np.ndarray | None, T_world_sensor: np.ndarray,
-                          status: str, keyframe_xyz=None) -> None:
-        """Paper: the scan becomes the target. Default: a keyframe when due, its points from
-        `keyframe_xyz()` (only built then, with their smoothness) or the registration's."""
-        if source_xyz is None:
-            return
-        if self.mode == 'paper':
-            self._prev_scan = to_cloud(source_xyz)
-            return
-        if status == 'first':
-            # Its motion is unknown, so it could not be deskewed: replaced by the first match.
-            self._map_provisional = self.deskew
-        elif self._map_provisional:
-            self.local_map.clear()
-            self._map_provisional = False
-        if self.local_map.needs_keyframe(T_world_sensor) or len(self.local_map) == 0:
-            points, smoothness = ((source_xyz, None) if keyframe_xyz is None
-                                  else keyframe_xyz())
-            self.local_map.add_keyframe(transform_points(T_world_sensor, points), T_world_sensor,
-                                        smoothness)

@@ -1,0 +1,106 @@
+"""One ICP call for scan registration, whichever solver runs it.
+
+open3d's ICP (point-to-point, point-to-plane or GICP; one residual type for every pair)
+serves paper mode and default mode with solver 'open3d'; the Gauss-Newton solver
+(core/gauss_newton.py: a residual type and weight per pair, core/residuals.py) serves default
+mode with solver 'gauss_newton'. The backend also tells the local map what its target must
+carry (normals, covariances, planarity) so that a rebuild computes it once.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import open3d as o3d
+
+from gft_odom.core.gauss_newton import GaussNewtonICP
+from gft_odom.core.local_map import LocalMap
+from gft_odom.core.residuals import make_residual_model
+
+if TYPE_CHECKING:
+    from gft_odom.core.registration import RegistrationConfig
+
+o3d_reg = o3d.pipelines.registration
+
+# Re-acquisition's fine ICP may iterate this many times longer than a normal match.
+RECOVERY_ITERATIONS_FACTOR = 4
+
+
+def robust_kernel(name: str, scale_m: float):
+    """open3d's robust loss of that name ('none': plain least squares)."""
+    if name == 'tukey':
+        return o3d_reg.TukeyLoss(scale_m)
+    if name == 'huber':
+        return o3d_reg.HuberLoss(scale_m)
+    if name == 'cauchy':
+        return o3d_reg.CauchyLoss(scale_m)
+    return o3d_reg.L2Loss()
+
+
+class IcpBackend:
+    """ICP from an initial guess against the local map (or, in paper mode, the last scan)."""
+
+    def __init__(self, config: RegistrationConfig, local_map: LocalMap):
+        self.config = config
+        self.local_map = local_map
+        self.estimation = config.resolved_estimation
+        self.criteria = o3d_reg.ICPConvergenceCriteria(
+            relative_fitness=config.convergence_relative,
+            relative_rmse=config.convergence_relative, max_iteration=config.max_iterations)
+        # Re-acquisition starts further away: more iterations to converge.
+        self.recovery_criteria = o3d_reg.ICPConvergenceCriteria(
+            relative_fitness=config.convergence_relative,
+            relative_rmse=config.convergence_relative,
+            max_iteration=RECOVERY_ITERATIONS_FACTOR * config.max_iterations)
+        # The paper's ICP is plain least squares; ours is robust.
+        kernel_name = 'none' if config.mode == 'paper' else config.robust_kernel
+        self.kernel = robust_kernel(kernel_name, config.robust_kernel_scale_m)
+        local_map.with_normals = self.estimation == 'point_to_plane'
+        local_map.with_covariances = self.estimation == 'gicp'
+        # Gauss-Newton (default mode): per-pair residual types and weights.
+        self.solver = None
+        if config.solver == 'gauss_newton' and config.mode == 'default':
+            self.solver = GaussNewtonICP(
+                make_residual_model(config.residual_model, config.rough_residual,
+                                    config.rough_weight),
+                config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
+                config.convergence_m, config.frequency_affinity_m)
+            local_map.with_normals = True
+            if config.residual_model == 'planarity':
+                local_map.smoothness_variation = config.rough_surface_variation
+                local_map.with_covariances = True  # computed once per map rebuild
+        # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
+        # the same with unknown kept NaN (frequency_affinity_m); set per scan.
+        self.source_smoothness: np.ndarray | None = None
+        self.point_smoothness: np.ndarray | None = None
+
+    def use_smoothness(self, source_smoothness: np.ndarray | None,
+                       point_smoothness: np.ndarray | None) -> None:
+        """The smoothness of the scan about to be matched (None: not used)."""
+        self.source_smoothness = source_smoothness
+        self.point_smoothness = point_smoothness
+
+    def register(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
+                 init: np.ndarray, distance_m: float, recovery: bool = False):
+        """ICP of `source` onto `target` from `init` with pairs up to `distance_m` apart
+        (`recovery`: the longer iteration budget of re-acquisition). Returns open3d's
+        result or the solver's IcpResult (transformation, fitness, inlier_rmse)."""
+        criteria = self.recovery_criteria if recovery else self.criteria
+        if self.solver is not None and target is self.local_map.cloud:
+            return self.solver.register(np.asarray(source.points), self.local_map.target(),
+                                        init, distance_m, self.source_smoothness,
+                                        criteria.max_iteration, self.point_smoothness)
+        if self.estimation == 'gicp':
+            estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
+                self.config.gicp_epsilon, self.kernel)
+            return o3d_reg.registration_generalized_icp(source, target, distance_m, init,
+                                                        estimation, criteria)
+        if self.estimation == 'point_to_plane':
+            if not target.has_normals():
+                target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(
+                    self.local_map.normal_neighbours))
+            estimation = o3d_reg.TransformationEstimationPointToPlane(self.kernel)
+        else:
+            estimation = o3d_reg.TransformationEstimationPointToPoint()
+        return o3d_reg.registration_icp(source, target, distance_m, init, estimation, criteria)

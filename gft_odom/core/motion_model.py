@@ -1,0 +1,243 @@
+"""The motion model of scan registration: where the sensor should be, and what it could have done.
+
+A constant velocity (rad/s, m/s) from the last trusted match, extrapolated over the real stamp
+difference and capped by the robot's physical bounds, is each scan's initial guess. The same
+bounds (with a margin for stamp jitter and ICP noise) refuse a match implying motion no Jackal
+can make, and a match far from the prediction is a jump.
+
+Everything is measured from the last trusted pose over the time since it, never from a
+fallback's extrapolated pose: after fallbacks the previous pose is only a prediction, and its
+error is not this scan's motion. After a gap or a run of fallbacks the velocity is dropped (a
+stale velocity would throw every later guess off) and re-acquisition is pending; the velocity
+from before the loss seeds its guesses. The twists of the last trusted scans give deskew a
+velocity with the ICP noise averaged out.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gft_odom.core.deskew import planar_delta, twist_from_delta
+from gft_odom.core.geometry import invert_transform, make_transform
+
+if TYPE_CHECKING:
+    from gft_odom.core.registration import RegistrationConfig
+
+log = logging.getLogger(__name__)
+
+
+def scale_delta(T: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion `T` extrapolated to `factor` times its duration (constant twist)."""
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(
+        Rotation.from_matrix(T[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = T[:3, 3] * factor
+    return out
+
+
+def twist_of(T_prev_curr: np.ndarray, dt_s: float) -> np.ndarray:
+    """(rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s and m/s of a motion lasting `dt_s`."""
+    omega, velocity = twist_from_delta(T_prev_curr, dt_s)
+    return np.r_[omega, velocity]
+
+
+def delta_of_twist(twist: np.ndarray, dt_s: float) -> np.ndarray:
+    """The rigid motion of a constant twist (rot rad/s, lin m/s) lasting `dt_s`."""
+    return make_transform(Rotation.from_rotvec(twist[:3] * dt_s).as_matrix(), twist[3:] * dt_s)
+
+
+def transform_magnitude(T: np.ndarray) -> tuple[float, float]:
+    """(translation m, rotation angle rad) of a rigid transform."""
+    cos_angle = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(T[:3, 3])), float(np.arccos(cos_angle))
+
+
+class MotionModel:
+    """The sensor's pose, last trusted pose and velocity: predicts, bounds and judges motion.
+
+    Reads the motion fields of a RegistrationConfig (physical bounds and margin, jump bounds,
+    gap, scan period, deskew window). `track_loss` False (paper mode: no map to re-acquire
+    against) never drops the velocity.
+    """
+
+    def __init__(self, config: RegistrationConfig, track_loss: bool = True):
+        self.config = config
+        self.track_loss = track_loss
+        self.reset()
+
+    def reset(self) -> None:
+        """No scan yet: pose identity, no velocity, nothing to re-acquire."""
+        # The pose at the last scan, trusted or extrapolated, and its stamp.
+        self.T_world_sensor = np.eye(4)
+        self.last_stamp_ns: int | None = None
+        # The last trusted pose and its stamp: fallbacks only extrapolate, so plausibility
+        # and re-acquisition are measured from here, over the time since it.
+        self.T_world_trusted = np.eye(4)
+        self.trusted_stamp_ns: int | None = None
+        # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
+        self.velocity = np.zeros(6)
+        # The velocities of the last trusted scans, whose mean deskew assumes.
+        self.twists: deque[np.ndarray] = deque(maxlen=self.config.deskew_velocity_window)
+        # Re-acquiring after a gap or a run of fallbacks; the velocity before the loss.
+        self.recovering = False
+        self.velocity_before_loss = np.zeros(6)
+        # (m/s, rad/s) the last `is_plausible` motion implied: what a refusal reports.
+        self.last_implied_rates: tuple[float | None, float | None] = (None, None)
+
+    # ------------------------------------------------------------ prediction
+
+    def capped(self, twist: np.ndarray) -> np.ndarray:
+        """`twist` scaled down (direction kept) to the speed and rotation-rate bounds."""
+        cfg = self.config
+        out = np.array(twist, dtype=float)
+        for part, bound in ((slice(0, 3), cfg.max_yaw_rate_rps), (slice(3, 6), cfg.max_speed_mps)):
+            norm = float(np.linalg.norm(out[part]))
+            if norm > bound:
+                out[part] *= bound / norm
+        return out
+
+    def predicted_delta(self, dt_s: float) -> np.ndarray:
+        """T_prev_curr the motion model expects `dt_s` after the last scan (none if <= 0)."""
+        return delta_of_twist(self.velocity, dt_s) if dt_s > 0.0 else np.eye(4)
+
+    def step_s(self, stamp_ns: int) -> float:
+        """Seconds since the last scan (the scan period before the first)."""
+        if self.last_stamp_ns is None:
+            return self.config.scan_period_s
+        dt_s = (int(stamp_ns) - self.last_stamp_ns) * 1e-9
+        if not dt_s > 0.0:
+            log.warning('scan stamp %d is not after the previous one (%d): predicting no motion',
+                        stamp_ns, self.last_stamp_ns)
+        return dt_s
+
+    def predict(self, stamp_ns: int) -> tuple[float, np.ndarray]:
+        """Time step since the last scan and the predicted pose. A gap drops the velocity:
+        extrapolated over it, the guess would be anywhere."""
+        dt_s = self.step_s(stamp_ns)
+        if self.last_stamp_ns is not None and dt_s > self.config.max_gap_s:
+            self.lose_track(f'gap of {dt_s:.2f} s in the scan stamps')
+        return dt_s, self.T_world_sensor @ self.predicted_delta(dt_s)
+
+    # ------------------------------------------------------------ judging a match
+
+    def since_trusted(self, stamp_ns: int, T_world_est: np.ndarray) -> tuple[np.ndarray, float]:
+        """The motion from the last trusted pose to `T_world_est` and the time it took (the
+        previous scan's unless registrations fell back since). A stamp not after the trusted
+        one (the API tolerates it, the pipeline refuses it) is measured from the previous pose
+        over the stamp step, as before the trusted pose existed."""
+        if self.trusted_stamp_ns is None or int(stamp_ns) <= self.trusted_stamp_ns:
+            dt_s = (self.config.scan_period_s if self.last_stamp_ns is None
+                    else (int(stamp_ns) - self.last_stamp_ns) * 1e-9)
+            return invert_transform(self.T_world_sensor) @ T_world_est, dt_s
+        return (invert_transform(self.T_world_trusted) @ T_world_est,
+                (int(stamp_ns) - self.trusted_stamp_ns) * 1e-9)
+
+    def is_plausible(self, T_prev_curr: np.ndarray, dt_s: float) -> bool:
+        """Could the robot have made this motion in `dt_s` (bounds times 1 + margin)?"""
+        cfg = self.config
+        distance_m, angle_rad = transform_magnitude(T_prev_curr)
+        slack = (1.0 + cfg.motion_margin) * max(dt_s, 0.0)
+        # What the motion implies, for a caller that reports a refusal (the bounds watch).
+        self.last_implied_rates = ((distance_m / dt_s, angle_rad / dt_s) if dt_s > 0.0
+                                   else (float('inf'), float('inf')))
+        return (distance_m <= cfg.max_speed_mps * slack
+                and angle_rad <= cfg.max_yaw_rate_rps * slack)
+
+    def jumped(self, T_pred: np.ndarray, T_est: np.ndarray, stamp_ns: int) -> bool:
+        """Farther from the prediction than the jump bounds, which grow with the time the
+        prediction has been extrapolated over (since the last trusted pose)."""
+        cfg = self.config
+        jump_m, jump_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
+        allowance = max(1.0, self.since_trusted(stamp_ns, T_est)[1] / cfg.scan_period_s)
+        if (jump_m > cfg.max_translation_jump_m * allowance
+                or jump_rad > cfg.max_rotation_jump_rad * allowance):
+            log.debug('ICP moved %.3f m / %.3f rad away from the prediction', jump_m, jump_rad)
+            return True
+        return False
+
+    def implied_velocity(self, stamp_ns: int, T_world_est: np.ndarray) -> np.ndarray | None:
+        """The capped velocity of the motion from the last trusted pose to `T_world_est`; None
+        over no time or a gap (a mean over a gap is no velocity)."""
+        motion, elapsed_s = self.since_trusted(stamp_ns, T_world_est)
+        if 0.0 < elapsed_s <= self.config.max_gap_s:
+            return self.capped(twist_of(motion, elapsed_s))
+        return None
+
+    # ------------------------------------------------------------ loss and re-acquisition
+
+    def lose_track(self, why: str) -> None:
+        """Stop extrapolating the velocity; re-acquire the next scan against the map (never
+        without `track_loss`)."""
+        if not self.track_loss:
+            return
+        if not self.recovering:
+            log.info('re-acquiring against the map: %s', why)
+            self.velocity_before_loss = self.velocity.copy()
+        self.recovering = True
+        self.velocity = np.zeros(6)
+        self.twists.clear()
+
+    def reacquisition_guesses(self, stamp_ns: int,
+                              retry: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(velocity, initial pose) pairs, all from the last trusted pose over the time since
+        it: zero motion, the velocity before the loss (capped), and its straight-line part (a
+        turn rate extrapolated over a long gap throws the guess sideways). `retry`: the
+        current velocity stands for the one before the loss."""
+        velocities = [np.zeros(6)]
+        before = self.capped(self.velocity if retry else self.velocity_before_loss)
+        if np.any(before):
+            velocities.append(before)
+        if np.any(before[:3]) and np.any(before[3:]):
+            velocities.append(np.r_[0.0, 0.0, 0.0, before[3:]])
+        _, elapsed_s = self.since_trusted(stamp_ns, self.T_world_trusted)
+        return [(velocity, self.T_world_trusted @ delta_of_twist(velocity, max(elapsed_s, 0.0)))
+                for velocity in velocities]
+
+    # ------------------------------------------------------------ state updates
+
+    def trust(self, stamp_ns: int, T_world_new: np.ndarray, status: str,
+              recovered_velocity: np.ndarray | None = None) -> None:
+        """A trusted pose: it becomes the reference of plausibility; a match (`ok`) sets the
+        velocity to the motion since the previous trusted pose, a re-acquisition
+        (`recovered`) to `recovered_velocity` (its winning guess, or a retry's motion)."""
+        velocity = self.implied_velocity(stamp_ns, T_world_new) if status == 'ok' else None
+        self.T_world_trusted = T_world_new.copy()
+        self.trusted_stamp_ns = int(stamp_ns)
+        if velocity is not None:
+            self.velocity = velocity
+            self.twists.append(self.velocity)
+        elif status == 'recovered':
+            self.velocity = recovered_velocity
+        self.recovering = False
+
+    def advance(self, stamp_ns: int, T_world_sensor: np.ndarray) -> None:
+        """The pose at `stamp_ns`, trusted or not, is where the next prediction starts."""
+        self.T_world_sensor = T_world_sensor
+        self.last_stamp_ns = int(stamp_ns)
+
+    # ------------------------------------------------------------ deskew
+
+    def deskew_motion(self, dt_s: float, latest: np.ndarray | None = None) -> np.ndarray:
+        """The motion over `dt_s` that deskew assumes: the mean twist of the recent trusted
+        scans (with `latest`, this scan's own estimate, as the newest), planar by default."""
+        window = self.config.deskew_velocity_window
+        twists = list(self.twists)
+        if latest is not None and dt_s > 0.0:
+            twists = twists[len(twists) - window + 1:] + [twist_of(latest, dt_s)]
+        if not twists or not dt_s > 0.0:
+            return np.eye(4)
+        motion = delta_of_twist(np.mean(twists[-window:], axis=0), dt_s)
+        return planar_delta(motion) if self.config.deskew_planar else motion
+
+    def scan_motion(self, stamp_ns: int, T_world_new: np.ndarray, dt_s: float) -> np.ndarray:
+        """The motion over this scan's `dt_s` that deskew assumes: the mean motion since the
+        last trusted pose, so a pose recovered after fallbacks is not read as one jump."""
+        motion, elapsed_s = self.since_trusted(stamp_ns, T_world_new)
+        if not elapsed_s > 0.0:
+            return invert_transform(self.T_world_sensor) @ T_world_new
+        return delta_of_twist(twist_of(motion, elapsed_s), dt_s)

@@ -1,0 +1,76 @@
+"""The motion model on its own: capping, plausibility, loss of track and re-acquisition."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gft_odom.core.geometry import make_transform
+from gft_odom.core.motion_model import MotionModel, delta_of_twist
+from gft_odom.core.registration import RegistrationConfig
+
+CONFIG = RegistrationConfig()  # 2 m/s, 4 rad/s, margin 0.5, gap 1 s
+STEP_NS = 100_000_000
+
+
+def test_capping_keeps_the_direction():
+    model = MotionModel(CONFIG)
+    capped = model.capped(np.array([0.0, 0.0, 10.0, 3.0, 4.0, 0.0]))
+    np.testing.assert_allclose(capped[:3], [0.0, 0.0, CONFIG.max_yaw_rate_rps])
+    np.testing.assert_allclose(capped[3:], [1.2, 1.6, 0.0])  # 2 m/s along (0.6, 0.8)
+    slow = np.array([0.0, 0.0, 0.5, 1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(model.capped(slow), slow)
+
+
+@pytest.mark.parametrize('T, plausible', [
+    (make_transform(None, [0.29, 0.0, 0.0]), True),  # bound 2 m/s x 1.5 x 0.1 s = 0.3 m
+    (make_transform(None, [0.31, 0.0, 0.0]), False),
+    (make_transform(Rotation.from_rotvec([0.0, 0.0, 0.59]).as_matrix()), True),  # 0.6 rad
+    (make_transform(Rotation.from_rotvec([0.0, 0.0, 0.61]).as_matrix()), False),
+])
+def test_a_motion_beyond_the_bounds_times_one_plus_margin_is_implausible(T, plausible):
+    model = MotionModel(CONFIG)
+    assert model.is_plausible(T, 0.1) is plausible
+    speed, rate = model.last_implied_rates  # what a refusal reports
+    assert speed == pytest.approx(np.linalg.norm(T[:3, 3]) / 0.1)
+    assert rate == pytest.approx(Rotation.from_matrix(T[:3, :3]).magnitude() / 0.1)
+
+
+def test_after_a_gap_the_velocity_is_dropped_and_reacquisition_is_pending():
+    model = MotionModel(CONFIG)
+    moving = np.array([0.0, 0.0, 0.3, 1.5, 0.0, 0.0])
+    model.trust(0, np.eye(4), 'first')
+    model.advance(0, np.eye(4))
+    model.velocity = moving
+    T_moved = delta_of_twist(moving, 0.1)
+    dt_s, T_pred = model.predict(STEP_NS)  # a normal step: extrapolated
+    np.testing.assert_allclose(T_pred, T_moved)
+    model.trust(STEP_NS, T_moved, 'ok')
+    model.advance(STEP_NS, T_moved)
+    np.testing.assert_allclose(model.velocity, moving)
+
+    dt_s, T_pred = model.predict(STEP_NS + 2_000_000_000)  # 2 s later: a gap
+    assert dt_s == pytest.approx(2.0)
+    assert model.recovering
+    np.testing.assert_array_equal(model.velocity, np.zeros(6))
+    np.testing.assert_array_equal(T_pred, T_moved)  # no velocity to extrapolate
+    # Re-acquisition starts from the trusted pose: standing, the velocity before the loss,
+    # and its straight-line part.
+    guesses = model.reacquisition_guesses(STEP_NS + 2_000_000_000)
+    velocities = np.array([velocity for velocity, _ in guesses])
+    np.testing.assert_allclose(velocities, [np.zeros(6), moving, [0, 0, 0, 1.5, 0, 0]])
+    np.testing.assert_array_equal(guesses[0][1], T_moved)
+    # A recovered pose ends the loss with the velocity of the guess that won.
+    model.trust(STEP_NS + 2_000_000_000, T_moved, 'recovered', moving)
+    assert not model.recovering
+    np.testing.assert_array_equal(model.velocity, moving)
+
+
+def test_without_track_loss_a_gap_keeps_the_velocity():
+    """Paper mode: no map to re-acquire against, so nothing is dropped."""
+    model = MotionModel(CONFIG, track_loss=False)
+    model.advance(0, np.eye(4))
+    model.velocity = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+    model.predict(2_000_000_000)
+    assert not model.recovering and model.velocity[3] == 1.0
