@@ -43,6 +43,8 @@ class MapTarget:
     # (n,) the smoothness of the scan point each map point came from (NaN: unknown), for
     # matching like with like.
     point_smoothness: np.ndarray | None = None
+    # (n, 3) where the sensor stood when each map point was measured (None: unknown).
+    viewpoints: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.squared_norms = np.einsum('ij,ij->i', self.points, self.points)
@@ -148,8 +150,10 @@ class GaussNewtonICP:
             s = smoothness[valid]
         elif target.smoothness is not None:
             s = target.smoothness[tgt]
+        beam = (None if target.viewpoints is None or target.viewpoints.shape[0] == 0
+                else target.points[tgt] - target.viewpoints[tgt])
         c = Correspondences(world[valid], world[valid] - T[:3, 3], target.points[tgt],
-                            target.normals[tgt], s)
+                            target.normals[tgt], s, beam)
         return np.column_stack([valid, tgt]), c
 
     def _normal_equations(self, c: Correspondences) -> tuple[np.ndarray, np.ndarray]:

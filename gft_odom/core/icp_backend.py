@@ -63,7 +63,7 @@ class IcpBackend:
         if config.solver == 'gauss_newton' and config.mode == 'default':
             self.solver = GaussNewtonICP(
                 make_residual_model(config.residual_model, config.rough_residual,
-                                    config.rough_weight),
+                                    config.rough_weight, config.rough_depth_ratio),
                 config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
                 config.convergence_m, config.frequency_affinity_m)
             local_map.with_normals = True

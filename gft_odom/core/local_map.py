@@ -90,6 +90,7 @@ class LocalMap:
         self._anchor_points = np.zeros((0, 3))
         self._anchor_keys = np.zeros(0, dtype=np.int64)
         self._anchor_smoothness_values = np.zeros(0)
+        self._anchor_viewpoints = np.zeros((0, 3))
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
         self.smoothness_variation: float | None = None
@@ -98,6 +99,8 @@ class LocalMap:
         # Per served point: the smoothness of the scan point it came from (None when a
         # keyframe came without one); the solver matches like with like when it has it.
         self.smoothness: np.ndarray | None = None
+        # Per served point: where the sensor stood when it was measured (its beam's origin).
+        self.viewpoints = np.zeros((0, 3))
         self._target: MapTarget | None = None
 
     def __len__(self) -> int:
@@ -109,8 +112,10 @@ class LocalMap:
         self._anchor_points = np.zeros((0, 3))
         self._anchor_keys = np.zeros(0, dtype=np.int64)
         self._anchor_smoothness_values = np.zeros(0)
+        self._anchor_viewpoints = np.zeros((0, 3))
         self.cloud = o3d.geometry.PointCloud()
         self.smoothness = None
+        self.viewpoints = np.zeros((0, 3))
         self._target = None
 
     def target(self) -> MapTarget:
@@ -123,7 +128,8 @@ class LocalMap:
                 smoothness = smoothness_from_covariances(covariances, self.smoothness_variation)
             self._target = MapTarget(np.asarray(self.cloud.points),
                                      np.asarray(self.cloud.normals), smoothness,
-                                     point_smoothness=self.smoothness)
+                                     point_smoothness=self.smoothness,
+                                     viewpoints=self.viewpoints)
         return self._target
 
     @property
@@ -168,7 +174,7 @@ class LocalMap:
     def _anchor(self, keyframe) -> None:
         """Keep the smooth points of a keyframe leaving the window (a filled voxel keeps
         its older anchor)."""
-        _, points, smoothness = keyframe
+        T, points, smoothness = keyframe
         if self.anchor_smoothness is None or smoothness is None:
             return
         smooth = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
@@ -178,6 +184,8 @@ class LocalMap:
         self._anchor_keys = np.concatenate([self._anchor_keys, keys[new]])
         self._anchor_smoothness_values = np.concatenate([self._anchor_smoothness_values,
                                                          smoothness[smooth][new]])
+        self._anchor_viewpoints = np.concatenate(
+            [self._anchor_viewpoints, np.broadcast_to(T[:3, 3], (int(new.sum()), 3))])
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
@@ -188,25 +196,29 @@ class LocalMap:
 
     def _rebuild(self, centre_xyz: np.ndarray) -> None:
         # The first point of a voxel wins: newest keyframe first keeps the freshest point,
-        # oldest first the one seen first; 'nearest' the one seen from closest.
-        order = list(reversed(self._keyframes) if self.voxel_keeps == 'newest'
-                     else self._keyframes)
+        # oldest first the one seen first; 'nearest' the one seen from closest. Each part:
+        # (points, smoothness or None, viewpoints, view priority or None).
+        keyframes = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
+        parts = [(pts, s, np.broadcast_to(T[:3, 3], pts.shape), self._view_priority(pts, T))
+                 for T, pts, s in keyframes]
         if self.n_anchors:
             # Anchors first: they are the oldest content, and a voxel they fill keeps them
-            # (with 'nearest' they compete by range from their sensor, unknown here: last).
-            anchors = (np.full((1, 4), np.nan), self._anchor_points,
-                       self._anchor_smoothness_values)
-            order = order + [anchors] if self.voxel_keeps == 'nearest' else [anchors] + order
-        merged = np.concatenate([pts for _, pts, _ in order])
+            # (with 'nearest' they compete by their range from where they were seen).
+            offset = self._anchor_points - self._anchor_viewpoints
+            anchors = (self._anchor_points, self._anchor_smoothness_values,
+                       self._anchor_viewpoints,
+                       -np.einsum('ij,ij->i', offset, offset)
+                       if self.voxel_keeps == 'nearest' else None)
+            parts = [anchors] + parts
+        merged = np.concatenate([p[0] for p in parts])
+        viewpoints = np.concatenate([p[2] for p in parts])
         # A keyframe without smoothness counts as unknown (NaN): the solver then matches its
         # points by distance alone.
-        smooth = (np.concatenate([np.full(len(pts), np.nan) if s is None else s
-                                  for _, pts, s in order])
-                  if any(s is not None for _, _, s in order) else None)
-        priority = (np.concatenate([self._view_priority(pts, T) for T, pts, _ in order])
-                    if self.voxel_keeps == 'nearest' else None)
-        if priority is not None:
-            priority = np.nan_to_num(priority, nan=-np.inf)  # anchors: no sensor position
+        smooth = (np.concatenate([np.full(len(p[0]), np.nan) if p[1] is None else p[1]
+                                  for p in parts])
+                  if any(p[1] is not None for p in parts) else None)
+        priority = (np.concatenate([p[3] for p in parts]) if self.voxel_keeps == 'nearest'
+                    else None)
         d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
         index = np.flatnonzero(d2 <= self.max_range_m ** 2)
         index = index[voxel_downsample_indices(
@@ -216,6 +228,7 @@ class LocalMap:
             index = index[np.argpartition(d2[index], self.max_points - 1)[:self.max_points]]
         merged = merged[index]
         self.smoothness = None if smooth is None else smooth[index]
+        self.viewpoints = viewpoints[index]
         cloud = to_cloud(merged)
         if merged.shape[0] >= 3:
             search = o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours)

@@ -196,6 +196,9 @@ class RegistrationConfig:
     # only: canopy returns sit at random depths along it) or 'point' (GenZ-ICP's).
     rough_residual: str = 'beam_perpendicular'
     rough_weight: float = 1.0
+    # rough_residual 'beam_covariance': how many times less certain a rough (canopy) return
+    # is along its beam than across it (its depth in the foliage).
+    rough_depth_ratio: float = 5.0
     # 'frequency': smoothness = nu / smooth_nu clipped to [0, 1] (ground and trunks ~0.5,
     # canopy ~0 on the scan-line graph).
     smooth_nu: float = 0.4
@@ -284,7 +287,7 @@ class RegistrationConfig:
                     'max_rotation_jump_rad', 'scan_period_s', 'convergence_relative',
                     'min_std_m', 'min_std_rad', 'fallback_std_m', 'fallback_std_rad',
                     'max_speed_mps', 'max_yaw_rate_rps', 'max_gap_s', 'smooth_nu',
-                    'rough_surface_variation', 'convergence_m')
+                    'rough_surface_variation', 'convergence_m', 'rough_depth_ratio')
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):

@@ -6,7 +6,13 @@ A scan point matched to a map point can constrain the pose in three ways:
 - beam-perpendicular point-to-point, `r = P (p - q)` with `P = I - b b^T` and b the unit beam
   direction: porous canopy is a volume whose returns sit at random depths along the beam, so
   it can say where the foliage is across the beam but not along it;
-- point-to-point, `r = p - q`: GenZ-ICP's residual where the map is not planar.
+- point-to-point, `r = p - q`: GenZ-ICP's residual where the map is not planar;
+- beam covariance, `r = p - q` weighed by `Omega = 2 (2 I + (k^2 - 1)(b b^T + c c^T))^-1`,
+  with b the scan point's beam and c the beam the map point was measured along: each canopy
+  return is uncertain k times more along its own beam (its depth in the foliage) than across
+  it. Seen from behind (the map), canopy beside and ahead of the robot is displaced along a
+  beam with a forward component; the scan sees it from beside. Point-to-point or the scan's
+  beam alone read that displacement as motion (docs/registration.md, the bias study).
 
 A model says, per correspondence, which residual types apply and with what weight (`terms`:
 a list of `Term`s); `normal_equations` turns a term into its Gauss-Newton contribution over
@@ -28,7 +34,7 @@ import numpy as np
 from gft_odom.errors import ConfigError
 
 RESIDUAL_MODELS = ('plane', 'frequency', 'planarity')
-ROUGH_RESIDUALS = ('beam_perpendicular', 'point')
+ROUGH_RESIDUALS = ('beam_perpendicular', 'point', 'beam_covariance')
 
 
 @dataclass
@@ -40,6 +46,9 @@ class Correspondences:
     target: np.ndarray  # (m, 3) nearest map points
     normal: np.ndarray  # (m, 3) map normals at the targets (unit)
     smoothness: np.ndarray | None  # (m,) in [0, 1], None when the model has no source of it
+    # (m, 3) unit direction each map point was measured along (None: unknown, the scan's
+    # beam stands in for it).
+    target_beam: np.ndarray | None = None
 
 
 def skew_rows(a: np.ndarray) -> np.ndarray:
@@ -82,10 +91,36 @@ class Term:
     kind: str
     index: np.ndarray
     weight: np.ndarray
+    # 'beam_covariance': the along-beam standard deviation over the across-beam one.
+    depth_ratio: float = 1.0
 
 
 # The residual types a model can assign; `normal_equations` has each one's closed form.
-RESIDUAL_KINDS = ('plane', 'beam_perpendicular', 'point')
+RESIDUAL_KINDS = ('plane', 'beam_perpendicular', 'point', 'beam_covariance')
+
+
+def unit_rows(v: np.ndarray) -> np.ndarray:
+    """Rows of `v` scaled to unit length (a zero row stays zero)."""
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+
+
+def beam_information(scan_beam: np.ndarray, map_beam: np.ndarray | None,
+                     depth_ratio: float) -> np.ndarray:
+    """(m, 3, 3) information of p - q when both points are `depth_ratio` times less certain
+    along their beams than across (1 across both beams)."""
+    b = unit_rows(scan_beam)
+    c = b if map_beam is None else unit_rows(map_beam)
+    outer = b[:, :, None] * b[:, None, :] + c[:, :, None] * c[:, None, :]
+    C = 2.0 * np.eye(3)[None] + (depth_ratio ** 2 - 1.0) * outer
+    return 2.0 * np.linalg.inv(C)
+
+
+def _beam_covariance_equations(a, e, Omega, w, kernel):
+    """(H, g) of point rows J = [I, -[a]x] weighed by Omega and w * kernel(Mahalanobis)."""
+    w = w * kernel(np.sqrt(np.maximum(np.einsum('ni,nij,nj->n', e, Omega, e), 0.0)))
+    J = np.concatenate([np.broadcast_to(np.eye(3), (a.shape[0], 3, 3)), -skew_rows(a)], axis=2)
+    JtO = np.einsum('nki,nkl->nil', J, Omega) * w[:, None, None]
+    return np.einsum('nil,nlj->ij', JtO, J), np.einsum('nil,nl->i', JtO, e)
 
 
 def normal_equations(c: Correspondences, term: Term, kernel) -> tuple[np.ndarray, np.ndarray]:
@@ -101,6 +136,10 @@ def normal_equations(c: Correspondences, term: Term, kernel) -> tuple[np.ndarray
         w = w * kernel(np.abs(r))
         Jw = J * w[:, None]
         return Jw.T @ J, Jw.T @ r
+    if term.kind == 'beam_covariance':
+        map_beam = None if c.target_beam is None else c.target_beam[i]
+        return _beam_covariance_equations(a, e, beam_information(a, map_beam,
+                                                                 term.depth_ratio), w, kernel)
     if term.kind not in ('beam_perpendicular', 'point'):
         raise ConfigError(f'residual kind must be one of {RESIDUAL_KINDS}, got {term.kind!r}')
     H = np.zeros((6, 6))
@@ -141,13 +180,14 @@ class SmoothnessResidual:
     """
 
     def __init__(self, name: str, rough_residual: str = 'beam_perpendicular',
-                 rough_weight: float = 1.0) -> None:
+                 rough_weight: float = 1.0, depth_ratio: float = 1.0) -> None:
         if rough_residual not in ROUGH_RESIDUALS:
             raise ConfigError(f'rough residual must be one of {ROUGH_RESIDUALS}, '
                               f'got {rough_residual!r}')
         self.name = name
         self.rough_residual = rough_residual
         self.rough_weight = float(rough_weight)
+        self.depth_ratio = float(depth_ratio)
 
     def terms(self, c: Correspondences) -> list[Term]:
         """A plane term weighted s over every pair, a rough term weighted 1 - s where s < 1."""
@@ -158,7 +198,8 @@ class SmoothnessResidual:
         out = [Term('plane', np.arange(m), s)]
         rough = np.flatnonzero(s < 1.0)
         if rough.size and self.rough_weight > 0.0:
-            out.append(Term(self.rough_residual, rough, self.rough_weight * (1.0 - s[rough])))
+            out.append(Term(self.rough_residual, rough, self.rough_weight * (1.0 - s[rough]),
+                            self.depth_ratio))
         return out
 
 
@@ -170,10 +211,20 @@ def linearise(model, c: Correspondences):
     Js, rs, ws, groups = [], [], [], []
     for term in model.terms(c):
         sub = Correspondences(c.source_world[term.index], c.lever[term.index],
-                              c.target[term.index], c.normal[term.index], None)
+                              c.target[term.index], c.normal[term.index], None,
+                              None if c.target_beam is None else c.target_beam[term.index])
         if term.kind == 'plane':
             J, r = plane_rows(sub)
             w, group = term.weight, term.index
+        elif term.kind == 'beam_covariance':
+            # Whitened point rows: L^T J, L^T r with Omega = L L^T.
+            J, r = point_rows(sub, False)
+            L = np.linalg.cholesky(beam_information(sub.lever, sub.target_beam,
+                                                    term.depth_ratio))
+            Lt = np.swapaxes(L, 1, 2)
+            J = np.einsum('nij,njk->nik', Lt, J.reshape(-1, 3, 6)).reshape(-1, 6)
+            r = np.einsum('nij,nj->ni', Lt, r.reshape(-1, 3)).reshape(-1)
+            w, group = np.repeat(term.weight, 3), m + np.repeat(term.index, 3)
         else:
             J, r = point_rows(sub, term.kind == 'beam_perpendicular')
             w, group = np.repeat(term.weight, 3), m + np.repeat(term.index, 3)
@@ -185,12 +236,12 @@ def linearise(model, c: Correspondences):
 
 
 def make_residual_model(name: str, rough_residual: str = 'beam_perpendicular',
-                        rough_weight: float = 1.0):
+                        rough_weight: float = 1.0, depth_ratio: float = 1.0):
     """The model named by `registration.residual_model`."""
     if name == 'plane':
         return PlaneResidual()
     if name in ('frequency', 'planarity'):
-        return SmoothnessResidual(name, rough_residual, rough_weight)
+        return SmoothnessResidual(name, rough_residual, rough_weight, depth_ratio)
     raise ConfigError(f'residual model must be one of {RESIDUAL_MODELS}, got {name!r}')
 
 

@@ -58,7 +58,8 @@ def test_update_moves_about_the_sensor_origin():
 
 
 @pytest.mark.parametrize('model', [PlaneResidual(),
-                                   SmoothnessResidual('frequency', 'beam_perpendicular')])
+                                   SmoothnessResidual('frequency', 'beam_perpendicular'),
+                                   SmoothnessResidual('frequency', 'beam_covariance', 1.0, 5.0)])
 def test_recovers_a_known_transform(scene, model):
     source = (invert_transform(T_TRUE)[:3, :3] @ scene.T).T + invert_transform(T_TRUE)[:3, 3]
     source += np.random.default_rng(1).normal(0.0, 0.01, source.shape)

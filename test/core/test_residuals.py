@@ -13,6 +13,7 @@ from gft_odom.core.residuals import (
     linearise,
     make_residual_model,
     normal_equations,
+    beam_information,
     smoothness_from_covariances,
     smoothness_from_nu,
 )
@@ -120,10 +121,11 @@ def test_unknown_models_are_refused():
         make_residual_model('frequency', 'along_beam')
 
 
-@pytest.mark.parametrize('kind', ['plane', 'beam_perpendicular', 'point'])
+@pytest.mark.parametrize('kind', ['plane', 'beam_perpendicular', 'point', 'beam_covariance'])
 def test_closed_form_normal_equations_equal_the_explicit_rows(kind):
     c = pairs(smoothness=np.zeros(20))
-    term = Term(kind, np.arange(3, 17), np.linspace(0.2, 1.0, 14))
+    c.target_beam = np.random.default_rng(5).normal(size=(20, 3))
+    term = Term(kind, np.arange(3, 17), np.linspace(0.2, 1.0, 14), depth_ratio=4.0)
     kernel = lambda e: 1.0 / (1.0 + (e / 0.1) ** 2)  # noqa: E731
     H, g = normal_equations(c, term, kernel)
 
@@ -137,3 +139,16 @@ def test_closed_form_normal_equations_equal_the_explicit_rows(kind):
     np.testing.assert_allclose(g, (J * w[:, None]).T @ r, atol=1e-9)
     with pytest.raises(ConfigError, match='residual kind'):
         normal_equations(c, Term('line', term.index, term.weight), kernel)
+
+
+def test_beam_information_discounts_depth_along_both_beams():
+    x, y, z = np.eye(3)
+    same = beam_information(x[None], x[None], 5.0)[0]
+    np.testing.assert_allclose(same @ x, x / 25.0)  # along the beam: 1 / k^2
+    np.testing.assert_allclose(same @ y, y)  # across it: 1
+    # The map point seen along y, the scan point along x: both depths discounted, z kept.
+    crossed = beam_information(x[None], y[None], 5.0)[0]
+    assert crossed @ x @ x < 0.1 and crossed @ y @ y < 0.1
+    np.testing.assert_allclose(crossed @ z, z)
+    # No map beam: the scan's stands in.
+    np.testing.assert_allclose(beam_information(x[None], None, 5.0)[0], same)
