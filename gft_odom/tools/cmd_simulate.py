@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='row: straight between two rows; uturn: down one row and back along '
                         'the next; loop: around a block of rows (default: row). Routes over '
                         "many rows, like CitrusFarm's: lawnmower, every_other_row, spiral, "
-                        'out_and_back (about --distance-m long)')
+                        'out_and_back (about --distance-m long); edge_lawnmower: a fast '
+                        'lawn-mower from the block edge, turning in open ground')
     p.add_argument('--scans', type=int, default=None,
                    help='number of sweeps (10 Hz); default 300, or the whole route')
     p.add_argument('--distance-m', type=float, default=300.0,
