@@ -97,13 +97,16 @@ class GaussNewtonICP:
     def register(self, source_xyz: np.ndarray, target: MapTarget, init: np.ndarray,
                  max_distance_m: float, source_smoothness: np.ndarray | None = None,
                  max_iterations: int | None = None,
-                 match_smoothness: np.ndarray | None = None) -> IcpResult:
+                 match_smoothness: np.ndarray | None = None,
+                 prior: tuple[np.ndarray, float] | None = None) -> IcpResult:
         """Align `source_xyz` (sensor frame) to `target` starting at `init` (T_world_sensor).
 
         `source_smoothness` (n,) in [0, 1] per source point, for frequency-aware models; a
         model reading the map's smoothness takes it from `target.smoothness`.
         `match_smoothness` (n,): the scan points' smoothness the candidate choice compares
-        with `target.point_smoothness` (with `affinity_m` > 0)."""
+        with `target.point_smoothness` (with `affinity_m` > 0). `prior` (T_world_sensor,
+        weight): a soft prior on the pose worth `weight` pairs along every axis (rotations
+        scaled by the median range squared); the returned information is the data's only."""
         T = np.array(init, dtype=float)
         n = source_xyz.shape[0]
         iterations = self.max_iterations if max_iterations is None else max_iterations
@@ -116,6 +119,8 @@ class GaussNewtonICP:
             if pairs.shape[0] < 6:
                 return IcpResult(T, pairs.shape[0] / max(n, 1), 0.0, pairs, None, used)
             H, g = self._normal_equations(c)
+            if prior is not None:
+                H, g = _with_prior(H, g, T, prior, reach_m)
             try:
                 dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
             except np.linalg.LinAlgError:
@@ -166,6 +171,21 @@ class GaussNewtonICP:
 
     def _kernel(self, e: np.ndarray) -> np.ndarray:
         return kernel_weights(self.kernel, e, self.kernel_scale_m)
+
+
+def _with_prior(H: np.ndarray, g: np.ndarray, T: np.ndarray, prior: tuple[np.ndarray, float],
+                reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations plus a diagonal prior pulling T towards the prior pose (residual:
+    translation difference, rotation vector of R R_prior^T; Jacobian ~ I near it)."""
+    T_prior, weight = prior
+    W = weight * np.r_[np.ones(3), np.full(3, max(reach_m, 1.0) ** 2)]
+    R_diff = T[:3, :3] @ T_prior[:3, :3].T
+    angle = np.arccos(np.clip((np.trace(R_diff) - 1.0) / 2.0, -1.0, 1.0))
+    axis = np.array([R_diff[2, 1] - R_diff[1, 2], R_diff[0, 2] - R_diff[2, 0],
+                     R_diff[1, 0] - R_diff[0, 1]])
+    rotvec = axis * (0.5 if angle < 1e-9 else angle / (2.0 * np.sin(angle)))
+    r = np.r_[T[:3, 3] - T_prior[:3, 3], rotvec]
+    return H + np.diag(W), g + W * r
 
 
 class _CandidateSearch:

@@ -82,15 +82,20 @@ class IcpBackend:
         self.point_smoothness = point_smoothness
 
     def register(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
-                 init: np.ndarray, distance_m: float, recovery: bool = False):
+                 init: np.ndarray, distance_m: float, recovery: bool = False,
+                 prior: bool = False):
         """ICP of `source` onto `target` from `init` with pairs up to `distance_m` apart
-        (`recovery`: the longer iteration budget of re-acquisition). Returns open3d's
+        (`recovery`: the longer iteration budget of re-acquisition; `prior`: `init` is the
+        motion model's prediction, a soft prior with motion_prior_weight). Returns open3d's
         result or the solver's IcpResult (transformation, fitness, inlier_rmse)."""
         criteria = self.recovery_criteria if recovery else self.criteria
         if self.solver is not None and target is self.local_map.cloud:
             return self.solver.register(np.asarray(source.points), self.local_map.target(),
                                         init, distance_m, self.source_smoothness,
-                                        criteria.max_iteration, self.point_smoothness)
+                                        criteria.max_iteration, self.point_smoothness,
+                                        (init, self.config.motion_prior_weight)
+                                        if prior and self.config.motion_prior_weight > 0.0
+                                        else None)
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
                 self.config.gicp_epsilon, self.kernel)

@@ -216,6 +216,12 @@ class RegistrationConfig:
     # canopy pairs with canopy, ground and trunks with their own surface. 0: distance alone
     # (also what --no-filter gives: no frequencies, nothing to compare).
     frequency_affinity_m: float = 0.0
+    # Gauss-Newton: the constant-velocity prediction as a soft prior on the match, worth this
+    # many pairs along every axis (rotations scaled by the median range squared). Where the
+    # scene constrains a direction (thousands of pairs) it is negligible; where it does not
+    # (open ground past a row end: along the track and yaw) it holds the prediction instead of
+    # letting the estimate slide. 0: no prior.
+    motion_prior_weight: float = 0.0
     # Motion compensation (default mode only). An undeskewed sweep registers to about its
     # mid-sweep pose, ~50 ms after the stamp it is published with; the evaluation of before
     # (GPS paired by nearest stamp, 37 ms after the scan) hid that and deskew looked mixed.
@@ -269,6 +275,9 @@ class RegistrationConfig:
         if self.residual_model != 'plane' and self.solver != 'gauss_newton':
             raise ConfigError(f"residual_model {self.residual_model!r} needs solver "
                               f"'gauss_newton' (open3d's ICP has one residual type)")
+        if not (math.isfinite(self.motion_prior_weight) and self.motion_prior_weight >= 0.0):
+            raise ConfigError(f'motion_prior_weight must be a finite number >= 0, '
+                              f'got {self.motion_prior_weight}')
         if not (math.isfinite(self.frequency_affinity_m) and self.frequency_affinity_m >= 0.0):
             raise ConfigError(f'frequency_affinity_m must be a finite number >= 0, '
                               f'got {self.frequency_affinity_m}')
@@ -664,7 +673,8 @@ class ScanRegistration:
         else:
             target = self.local_map.cloud
             init = T_pred
-        result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m)
+        result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m,
+                                   prior=self.mode == 'default')
         T_est = np.asarray(result.transformation)
         if self.mode == 'paper':
             T_est = self.T_world_trusted @ T_est

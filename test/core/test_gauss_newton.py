@@ -153,3 +153,24 @@ def test_affinity_prefers_a_pair_within_the_distance():
     valid, index = _CandidateSearch(target, 1.0, np.array([0.0]), affinity_m=5.0).nearest(
         np.zeros((1, 3)))
     assert list(valid) == [0] and list(index) == [1]
+
+
+def test_a_motion_prior_holds_the_prediction_where_few_pairs_constrain():
+    # A corridor along x: only a small wall at its end (100 points) says where along x the
+    # scan is, and it says +0.15 m. Without a prior the estimate follows it; with a prior worth
+    # 300 pairs at the prediction (identity) it moves ~100 / 400 of that. Across the
+    # corridor (~3000 wall pairs) the data still mostly rules.
+    rng = np.random.default_rng(4)
+    corridor = box_scene(corridor=True)
+    end_wall = np.c_[np.full(100, 10.0), rng.uniform(-3.5, 3.5, 100), rng.uniform(0.2, 2.5, 100)]
+    scene = np.concatenate([corridor, end_wall])
+    source = scene.copy()
+    source[-100:, 0] -= 0.15
+    source[:, 1] -= 0.05  # and 5 cm across the corridor
+    solver = GaussNewtonICP(PlaneResidual(), 'tukey', 0.5, max_iterations=50)
+    free = solver.register(source, target_of(scene), np.eye(4), 1.0)
+    held = solver.register(source, target_of(scene), np.eye(4), 1.0, prior=(np.eye(4), 300.0))
+    assert free.transformation[0, 3] > 0.12
+    assert 0.02 < held.transformation[0, 3] < 0.06
+    np.testing.assert_allclose([free.transformation[1, 3], held.transformation[1, 3]],
+                               0.05, atol=0.01)
