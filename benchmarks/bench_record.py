@@ -61,15 +61,26 @@ ENTRIES = (
     Entry('LOAM', 'loam'),
 )
 
-# Issue 20's ablation of the frequency-aware registration (Gauss-Newton solver, per-pair
-# residuals): the frequency as a per-pair weight (rough_weight 0: canopy pairs down-weighted,
-# the best of the 'frequency' variants on training drive every_other_row-113), the same
-# registration without frequencies (--no-filter: every pair a plane of weight 1), the
-# frequencies shuffled among each scan's points (a control that must lose), and the map
-# neighbourhood's planarity in place of the frequency (GenZ-ICP-style point-to-point rows).
+# Issue 20's ablations. Session 6: the frequency deciding what the map keeps (anchors: a
+# keyframe leaving the window leaves its smooth points, ground and trunks, behind), against the
+# same registration without frequencies (--no-filter: nothing is anchored, the map is the
+# keyframe window alone) and with each scan's frequencies shuffled among its points (random
+# points anchored: the memory without the frequency's choice).
+_ANCHORS = (('registration.map_anchors', True),)
+ABLATION_ENTRIES = (
+    Entry('anchors (frequency)', 'default+gft', _ANCHORS),
+    Entry('no frequency (--no-filter)', 'default', _ANCHORS),
+    Entry('anchors, shuffled frequency', 'default+gft',
+          _ANCHORS + (('pipeline.shuffle_frequencies', True),)),
+)
+# Session 5: the Gauss-Newton solver with per-pair residuals: the frequency as a per-pair
+# weight (rough_weight 0: canopy pairs down-weighted, the best of the 'frequency' variants on
+# training drive every_other_row-113), the same registration without frequencies, shuffled,
+# and the map neighbourhood's planarity in place of the frequency (GenZ-ICP-style
+# point-to-point rows).
 _GN = (('registration.solver', 'gauss_newton'), ('registration.convergence_m', 5e-4),
        ('registration.residual_model', 'frequency'), ('registration.rough_weight', 0.0))
-ABLATION_ENTRIES = (
+ABLATION_ENTRIES += (
     Entry('GN, frequency as weight', 'default+gft', _GN),
     Entry('GN, no frequency (--no-filter)', 'default', _GN),
     Entry('GN, shuffled frequency', 'default+gft',

@@ -10,10 +10,10 @@ from gft_odom.core.residuals import (
     PlaneResidual,
     SmoothnessResidual,
     Term,
+    beam_information,
     linearise,
     make_residual_model,
     normal_equations,
-    beam_information,
     smoothness_from_covariances,
     smoothness_from_nu,
 )
