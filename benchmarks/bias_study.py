@@ -14,8 +14,9 @@ Variants (registration from the truth unless an initial offset is named):
   the distorted map keeping the newest point per voxel instead of the oldest;
 - solvers: open3d point-to-plane ICP as `IcpBackend.register` (core/icp_backend.py) runs it
   (Tukey 0.3 m, relative criteria 1e-4, 30 iterations), the same run to 1e-10 / 100
-  iterations, the Gauss-Newton solver (`core/gauss_newton.py`) with the plane model (update < 1e-4, and < 1e-5) and with
-  the 'frequency' model (smoothness from the scan point's nu);
+  iterations, the Gauss-Newton solver (`core/gauss_newton.py`) with the plane model
+  (update < 1e-4, and < 1e-5) and with the 'frequency' model (smoothness from the scan
+  point's nu);
 - initial guess moved +-0.1 / 0.2 m along the track: does ICP come back, or stay near it?
 - the pull of each class at the truth: the along-track step that the class's point-to-plane
   rows alone ask for (-sum w r n_a / sum w n_a^2 over all pairs), trunks split into those
