@@ -175,9 +175,16 @@ class LocalMap:
         """Keep the smooth points of a keyframe leaving the window (a filled voxel keeps
         its older anchor)."""
         T, points, smoothness = keyframe
-        if self.anchor_smoothness is None or smoothness is None:
+        if self.anchor_smoothness is None:
             return
-        smooth = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
+        if self.anchor_smoothness <= 0.0:  # every point, with or without a frequency
+            smoothness = (np.full(points.shape[0], np.nan) if smoothness is None
+                          else smoothness)
+            smooth = np.arange(points.shape[0])
+        elif smoothness is None:
+            return
+        else:
+            smooth = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
         keys = voxel_keys(points[smooth], self.voxel_size_m)
         new = ~np.isin(keys, self._anchor_keys)
         self._anchor_points = np.concatenate([self._anchor_points, points[smooth][new]])

@@ -142,7 +142,8 @@ class RegistrationConfig:
     # Anchors: when a keyframe leaves the window, its points of smoothness >= this (the
     # graph frequency nu / smooth_nu: ground, trunks, posts) stay in the map while within
     # map_max_range_m; canopy, which looks different from another row, leaves with it.
-    # Without frequencies (--no-filter) nothing is anchored.
+    # Without frequencies (--no-filter) nothing is anchored; at 0 every point is, with or
+    # without frequencies (a long memory that does not read them: the control).
     map_anchors: bool = False
     map_anchor_smoothness: float = 0.75
     keyframe_distance_m: float = 1.0

@@ -804,3 +804,15 @@ def test_anchors_drop_out_of_range_and_yield_a_voxel_to_nothing():
     local_map.add_keyframe(np.array([[30.2, 0.5, 0.5]]), T3, np.array([1.0]))
     assert local_map.points_xyz[:, 0].tolist() == [30.2]  # anchors beyond 15 m not served
     assert local_map.n_anchors == 1  # the 0.7 point's voxel was already anchored
+
+
+def test_anchors_at_zero_keep_every_point_with_or_without_frequencies():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(0.1, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                         anchor_smoothness=0.0)
+    for x in (0.0, 10.0, 20.0):
+        T = np.eye(4)
+        T[0, 3] = x
+        local_map.add_keyframe(np.array([[x, 2.0, 0.0], [x, -2.0, 2.0]]), T)
+    assert local_map.n_anchors == 4  # both points of the two keyframes that left
+    assert len(local_map) == 6
