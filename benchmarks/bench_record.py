@@ -37,11 +37,14 @@ DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels
 # keep the newest keyframe's point, no retry of a failed match), spelled out so the row means
 # the same after the change. The defaults before issue 15 (15 keyframes) are in the study.
+# Session 6 made anchors the default (a keyframe leaving the window leaves its points in the
+# map); the rows of the studies before spell out that they had none.
+NO_ANCHORS = (('registration.map_anchors', False),)
 PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_points', 80000),
                      ('registration.map_keyframe_eviction', 'oldest'),
                      ('registration.keyframe_rotation_rad', 0.2),
                      ('registration.map_voxel_keeps', 'newest'),
-                     ('registration.retry_failed_match', False))
+                     ('registration.retry_failed_match', False)) + NO_ANCHORS
 # Before issue 15: a 15-keyframe map.
 ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
                                              ('registration.map_max_points', 40000))
@@ -52,6 +55,7 @@ ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
     Entry('gft_odom + deskew', 'default+gft', (('registration.deskew', True),)),
+    Entry('gft_odom without anchors (session 5 default)', 'default+gft', NO_ANCHORS),
     Entry('kiss-icp', 'kiss-icp'),
     Entry('kiss-icp (evalio)', 'kiss-icp-evalio'),
     Entry('GenZ-ICP', 'genz-icp'),
@@ -66,12 +70,13 @@ ENTRIES = (
 # same registration without frequencies (--no-filter: nothing is anchored, the map is the
 # keyframe window alone) and with each scan's frequencies shuffled among its points (random
 # points anchored: the memory without the frequency's choice).
-_ANCHORS = (('registration.map_anchors', True),)
+_ANCHORS = (('registration.map_anchors', True), ('registration.map_anchor_smoothness', 0.75))
 ABLATION_ENTRIES = (
-    Entry('anchors (frequency)', 'default+gft', _ANCHORS),
+    Entry('anchors (frequency; the default)', 'default+gft', _ANCHORS),
     Entry('no frequency (--no-filter)', 'default', _ANCHORS),
     Entry('anchors, shuffled frequency', 'default+gft',
           _ANCHORS + (('pipeline.shuffle_frequencies', True),)),
+    Entry('anchors, every point', 'default+gft', (('registration.map_anchor_smoothness', 0.0),)),
 )
 # Session 5: the Gauss-Newton solver with per-pair residuals: the frequency as a per-pair
 # weight (rough_weight 0: canopy pairs down-weighted, the best of the 'frequency' variants on
@@ -79,13 +84,14 @@ ABLATION_ENTRIES = (
 # and the map neighbourhood's planarity in place of the frequency (GenZ-ICP-style
 # point-to-point rows).
 _GN = (('registration.solver', 'gauss_newton'), ('registration.convergence_m', 5e-4),
-       ('registration.residual_model', 'frequency'), ('registration.rough_weight', 0.0))
+       ('registration.residual_model', 'frequency'), ('registration.rough_weight', 0.0)
+       ) + NO_ANCHORS
 ABLATION_ENTRIES += (
     Entry('GN, frequency as weight', 'default+gft', _GN),
     Entry('GN, no frequency (--no-filter)', 'default', _GN),
     Entry('GN, shuffled frequency', 'default+gft',
           _GN + (('pipeline.shuffle_frequencies', True),)),
-    Entry('GN, map planarity (GenZ-style)', 'default+gft', _GN[:2] + (
+    Entry('GN, map planarity (GenZ-style)', 'default+gft', _GN[:2] + NO_ANCHORS + (
         ('registration.residual_model', 'planarity'), ('registration.rough_residual', 'point'))),
 )
 

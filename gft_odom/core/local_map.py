@@ -69,7 +69,8 @@ class LocalMap:
                  max_keyframes: int, keyframe_distance_m: float, keyframe_rotation_rad: float,
                  normal_neighbours: int, with_normals: bool = True,
                  with_covariances: bool = False, eviction: str = 'oldest',
-                 voxel_keeps: str = 'oldest', anchor_smoothness: float | None = None):
+                 voxel_keeps: str = 'oldest', anchor_smoothness: float | None = None,
+                 anchor_max_points: int = 2_000_000):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -87,6 +88,8 @@ class LocalMap:
         self.max_keyframes = max_keyframes
         # Smoothness (in [0, 1]) at which a point outlives its keyframe; None: no anchors.
         self.anchor_smoothness = anchor_smoothness
+        # Memory bound of a long run: beyond it the anchors farthest from the sensor go.
+        self.anchor_max_points = anchor_max_points
         self._anchor_points = np.zeros((0, 3))
         self._anchor_keys = np.zeros(0, dtype=np.int64)
         self._anchor_smoothness_values = np.zeros(0)
@@ -159,9 +162,9 @@ class LocalMap:
                 where = np.array([T[:3, 3] for T, _, _ in self._keyframes])
                 d2 = np.einsum('ij,ij->i', where - T_world_sensor[:3, 3],
                                where - T_world_sensor[:3, 3])
-                self._anchor(self._keyframes.pop(int(np.argmax(d2))))
+                self._anchor(self._keyframes.pop(int(np.argmax(d2))), T_world_sensor[:3, 3])
             else:
-                self._anchor(self._keyframes.pop(0))
+                self._anchor(self._keyframes.pop(0), T_world_sensor[:3, 3])
         self._keyframes.append((T_world_sensor.copy(), points_world[keep],
                                 None if smoothness is None else smoothness[keep]))
         self._rebuild(T_world_sensor[:3, 3])
@@ -171,9 +174,10 @@ class LocalMap:
         """Points kept after their keyframe left the window (all of them, in range or not)."""
         return self._anchor_points.shape[0]
 
-    def _anchor(self, keyframe) -> None:
+    def _anchor(self, keyframe, centre_xyz: np.ndarray) -> None:
         """Keep the smooth points of a keyframe leaving the window (a filled voxel keeps
-        its older anchor)."""
+        its older anchor). The anchors are kept sorted by voxel key (membership by binary
+        search); over `anchor_max_points` the farthest from `centre_xyz` are dropped."""
         T, points, smoothness = keyframe
         if self.anchor_smoothness is None:
             return
@@ -186,13 +190,29 @@ class LocalMap:
         else:
             smooth = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
         keys = voxel_keys(points[smooth], self.voxel_size_m)
-        new = ~np.isin(keys, self._anchor_keys)
-        self._anchor_points = np.concatenate([self._anchor_points, points[smooth][new]])
-        self._anchor_keys = np.concatenate([self._anchor_keys, keys[new]])
-        self._anchor_smoothness_values = np.concatenate([self._anchor_smoothness_values,
-                                                         smoothness[smooth][new]])
+        keys, first = np.unique(keys, return_index=True)
+        smooth = smooth[first]
+        at = np.searchsorted(self._anchor_keys, keys)
+        known = at < self._anchor_keys.shape[0]
+        known[known] = self._anchor_keys[at[known]] == keys[known]
+        new = smooth[~known]
+        keys = np.concatenate([self._anchor_keys, keys[~known]])
+        order = np.argsort(keys, kind='stable')  # two sorted runs: a merge
+        self._anchor_keys = keys[order]
+        self._anchor_points = np.concatenate([self._anchor_points, points[new]])[order]
+        self._anchor_smoothness_values = np.concatenate(
+            [self._anchor_smoothness_values, smoothness[new]])[order]
         self._anchor_viewpoints = np.concatenate(
-            [self._anchor_viewpoints, np.broadcast_to(T[:3, 3], (int(new.sum()), 3))])
+            [self._anchor_viewpoints, np.broadcast_to(T[:3, 3], (new.shape[0], 3))])[order]
+        if self.n_anchors > self.anchor_max_points:
+            offset = self._anchor_points - centre_xyz
+            keep = np.sort(np.argpartition(np.einsum('ij,ij->i', offset, offset),
+                                           self.anchor_max_points - 1)
+                           [:self.anchor_max_points])
+            self._anchor_keys = self._anchor_keys[keep]
+            self._anchor_points = self._anchor_points[keep]
+            self._anchor_smoothness_values = self._anchor_smoothness_values[keep]
+            self._anchor_viewpoints = self._anchor_viewpoints[keep]
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""

@@ -816,3 +816,16 @@ def test_anchors_at_zero_keep_every_point_with_or_without_frequencies():
         local_map.add_keyframe(np.array([[x, 2.0, 0.0], [x, -2.0, 2.0]]), T)
     assert local_map.n_anchors == 4  # both points of the two keyframes that left
     assert len(local_map) == 6
+
+
+def test_anchors_are_bounded_by_dropping_the_farthest():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(0.1, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                         anchor_smoothness=0.0, anchor_max_points=2)
+    for x in (0.0, 10.0, 20.0, 30.0):
+        T = np.eye(4)
+        T[0, 3] = x
+        local_map.add_keyframe(np.array([[x, 2.0, 0.0]]), T)
+    # Keyframes 0, 10 and 20 left the window; the newest is at 30: 0 is the farthest.
+    assert local_map.n_anchors == 2
+    assert sorted(local_map.points_xyz[:, 0].round()) == [10.0, 20.0, 30.0]
