@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from gft_odom.core.residuals import Correspondences, normal_equations
 
@@ -179,11 +180,7 @@ def _with_prior(H: np.ndarray, g: np.ndarray, T: np.ndarray, prior: tuple[np.nda
     translation difference, rotation vector of R R_prior^T; Jacobian ~ I near it)."""
     T_prior, weight = prior
     W = weight * np.r_[np.ones(3), np.full(3, max(reach_m, 1.0) ** 2)]
-    R_diff = T[:3, :3] @ T_prior[:3, :3].T
-    angle = np.arccos(np.clip((np.trace(R_diff) - 1.0) / 2.0, -1.0, 1.0))
-    axis = np.array([R_diff[2, 1] - R_diff[1, 2], R_diff[0, 2] - R_diff[2, 0],
-                     R_diff[1, 0] - R_diff[0, 1]])
-    rotvec = axis * (0.5 if angle < 1e-9 else angle / (2.0 * np.sin(angle)))
+    rotvec = Rotation.from_matrix(T[:3, :3] @ T_prior[:3, :3].T).as_rotvec()
     r = np.r_[T[:3, 3] - T_prior[:3, 3], rotvec]
     return H + np.diag(W), g + W * r
 

@@ -90,10 +90,7 @@ class LocalMap:
         self.anchor_smoothness = anchor_smoothness
         # Memory bound of a long run: beyond it the anchors farthest from the sensor go.
         self.anchor_max_points = anchor_max_points
-        self._anchor_points = np.zeros((0, 3))
-        self._anchor_keys = np.zeros(0, dtype=np.int64)
-        self._anchor_smoothness_values = np.zeros(0)
-        self._anchor_viewpoints = np.zeros((0, 3))
+        self._clear_anchors()
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
         self.smoothness_variation: float | None = None
@@ -112,10 +109,7 @@ class LocalMap:
     def clear(self) -> None:
         """Drop every keyframe."""
         self._keyframes.clear()
-        self._anchor_points = np.zeros((0, 3))
-        self._anchor_keys = np.zeros(0, dtype=np.int64)
-        self._anchor_smoothness_values = np.zeros(0)
-        self._anchor_viewpoints = np.zeros((0, 3))
+        self._clear_anchors()
         self.cloud = o3d.geometry.PointCloud()
         self.smoothness = None
         self.viewpoints = np.zeros((0, 3))
@@ -198,21 +192,30 @@ class LocalMap:
         new = smooth[~known]
         keys = np.concatenate([self._anchor_keys, keys[~known]])
         order = np.argsort(keys, kind='stable')  # two sorted runs: a merge
-        self._anchor_keys = keys[order]
-        self._anchor_points = np.concatenate([self._anchor_points, points[new]])[order]
-        self._anchor_smoothness_values = np.concatenate(
-            [self._anchor_smoothness_values, smoothness[new]])[order]
-        self._anchor_viewpoints = np.concatenate(
-            [self._anchor_viewpoints, np.broadcast_to(T[:3, 3], (new.shape[0], 3))])[order]
+        self._set_anchors(
+            keys[order], np.concatenate([self._anchor_points, points[new]])[order],
+            np.concatenate([self._anchor_smoothness_values, smoothness[new]])[order],
+            np.concatenate([self._anchor_viewpoints,
+                            np.broadcast_to(T[:3, 3], (new.shape[0], 3))])[order])
         if self.n_anchors > self.anchor_max_points:
             offset = self._anchor_points - centre_xyz
             keep = np.sort(np.argpartition(np.einsum('ij,ij->i', offset, offset),
                                            self.anchor_max_points - 1)
                            [:self.anchor_max_points])
-            self._anchor_keys = self._anchor_keys[keep]
-            self._anchor_points = self._anchor_points[keep]
-            self._anchor_smoothness_values = self._anchor_smoothness_values[keep]
-            self._anchor_viewpoints = self._anchor_viewpoints[keep]
+            self._set_anchors(self._anchor_keys[keep], self._anchor_points[keep],
+                              self._anchor_smoothness_values[keep],
+                              self._anchor_viewpoints[keep])
+
+    def _set_anchors(self, keys, points, smoothness, viewpoints) -> None:
+        """The anchors, as four aligned arrays sorted by voxel key."""
+        self._anchor_keys = keys
+        self._anchor_points = points
+        self._anchor_smoothness_values = smoothness
+        self._anchor_viewpoints = viewpoints
+
+    def _clear_anchors(self) -> None:
+        self._set_anchors(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0),
+                          np.zeros((0, 3)))
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
