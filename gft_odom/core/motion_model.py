@@ -198,6 +198,28 @@ class MotionModel:
         return [(velocity, self.T_world_trusted @ delta_of_twist(velocity, max(elapsed_s, 0.0)))
                 for velocity in velocities]
 
+    def turn_guesses(self, stamp_ns: int,
+                     retry: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(velocity, initial pose) pairs for a turn begun or ended since the last trusted
+        pose: the velocity before the loss with its yaw rate (sensor z up) changed by
+        k x `recovery_yaw_rate_step_rps` either way, capped. None within half a scan period
+        of the trusted pose: there even 2 rad/s more turn a guess by < 0.1 rad, which the
+        match covers from the prediction (and a stamp 30 ms after a scan is more likely a
+        copy than a turn: the fault suite's mirrored copies)."""
+        cfg = self.config
+        _, elapsed_s = self.since_trusted(stamp_ns, self.T_world_trusted)
+        if elapsed_s < 0.5 * cfg.scan_period_s:
+            return []
+        before = self.capped(self.velocity if retry else self.velocity_before_loss)
+        guesses = []
+        for k in range(1, cfg.recovery_yaw_guesses + 1):
+            for sign in (-1.0, 1.0):
+                turned = before.copy()
+                turned[2] += sign * k * cfg.recovery_yaw_rate_step_rps
+                turned = self.capped(turned)
+                guesses.append((turned, self.T_world_trusted @ delta_of_twist(turned, elapsed_s)))
+        return guesses
+
     # ------------------------------------------------------------ state updates
 
     def trust(self, stamp_ns: int, T_world_new: np.ndarray, status: str,

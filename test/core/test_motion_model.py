@@ -74,3 +74,19 @@ def test_without_track_loss_a_gap_keeps_the_velocity():
     model.velocity = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
     model.predict(2_000_000_000)
     assert not model.recovering and model.velocity[3] == 1.0
+
+
+def test_turn_guesses_change_the_yaw_rate_either_way_capped():
+    model = MotionModel(CONFIG)  # 2 guesses a side, 1 rad/s apart
+    model.trust(0, np.eye(4), 'first')
+    model.velocity = np.array([0.0, 0.0, 2.5, 1.0, 0.0, 0.0])
+    guesses = model.turn_guesses(STEP_NS, retry=True)
+    yaw_rates = [velocity[2] for velocity, _ in guesses]
+    np.testing.assert_allclose(yaw_rates, [1.5, 3.5, 0.5, CONFIG.max_yaw_rate_rps])  # 4.5 capped
+    velocity, T_init = guesses[0]
+    np.testing.assert_allclose(T_init, delta_of_twist(velocity, 0.1))  # from the trusted pose
+    # 30 ms after the trusted pose (a copy, or jitter) there is no turn to guess.
+    assert model.turn_guesses(STEP_NS * 3 // 10, retry=True) == []
+    off = MotionModel(RegistrationConfig(recovery_yaw_guesses=0))
+    off.trust(0, np.eye(4), 'first')
+    assert off.turn_guesses(STEP_NS, retry=True) == []
