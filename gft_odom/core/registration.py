@@ -196,9 +196,10 @@ class RegistrationConfig:
     # k x recovery_yaw_rate_step_rps, k = 1..recovery_yaw_guesses, either way (0: none). At
     # the onset of a fast turn in open ground (a headland past the block's edge) ICP from a
     # guess without the turn slides along the track instead of turning: the ground fits any
-    # yaw, and the far row ends that fix it are outside the correspondence gate. Such a turned
-    # fit wins only if it fits better than every fit from the other guesses, refused ones
-    # included (else it is a local minimum, not a turn). Edge drive 221: 57 m -> 0.23 m ATE.
+    # yaw, and the far row ends that fix it are outside the correspondence gate. Turned
+    # guesses are tried only when no other guess gives an acceptable fit, and a turned fit
+    # must fit better than every other guess's, refused ones included (else it is a local
+    # minimum, not a turn). Edge drive 221: 57 m -> 0.23 m ATE (docs/registration.md).
     recovery_yaw_guesses: int = 2
     recovery_yaw_rate_step_rps: float = 1.0
     # The solver of default mode: 'open3d' (its ICP: one residual type for every pair) or
@@ -716,10 +717,11 @@ class ScanRegistration:
     def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
                    retry: bool = False) -> Match:
         """Re-acquire against the map from a few initial guesses (the motion model's, from
-        the last trusted pose, and turned ones). From each: a coarse ICP with a widened
-        correspondence distance, then the normal one with more iterations. The plausible fit
-        with the best fitness wins (a turned guess's only if it fits better than every plain
-        guess's); no jump check (the guesses are rough).
+        the last trusted pose). From each: a coarse ICP with a widened correspondence
+        distance, then the normal one with more iterations. The plausible fit with the best
+        fitness wins; no jump check (the guesses are rough). Only when no plain guess gives
+        one are turned guesses tried, and a turned fit must fit better than every plain
+        guess's, refused ones included.
 
         `retry`: a second chance for a scan whose match from the prediction failed, with the
         current velocity as the one before the loss; the fit must pass every check a match
@@ -729,28 +731,31 @@ class ScanRegistration:
         source, target = to_cloud(source_xyz), self.local_map.cloud
         wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
         best, status = None, 'fallback_low_fitness'
-        plain_guesses = self.motion.reacquisition_guesses(stamp_ns, retry)
         best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
-        for k, (velocity, init) in enumerate(
-                plain_guesses + self.motion.turn_guesses(stamp_ns, retry)):
-            coarse = self.icp.register(source, target, init, wide_m)
-            result = self.icp.register(source, target, np.asarray(coarse.transformation),
-                                       cfg.max_correspondence_distance_m, recovery=True)
-            T_est = np.asarray(result.transformation)
-            if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
-                continue
-            if k < len(plain_guesses):
-                best_plain_fitness = max(best_plain_fitness, float(result.fitness))
-            elif result.fitness <= best_plain_fitness:
-                continue  # a turned guess that fits no better is a local minimum
-            if retry and (self.trust.relatively_unfit(float(result.fitness))
-                          or self.motion.jumped(T_pred, T_est, stamp_ns)):
-                continue
-            if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
-                status = 'fallback_implausible'
-                continue
-            if best is None or result.fitness > best[0].fitness:
-                best = (result, T_est, velocity)
+        for turned in (False, True):
+            if turned and best is not None:
+                break  # turned guesses are the last resort: a plain guess fitted
+            guesses = (self.motion.turn_guesses(stamp_ns, retry) if turned
+                       else self.motion.reacquisition_guesses(stamp_ns, retry))
+            for velocity, init in guesses:
+                coarse = self.icp.register(source, target, init, wide_m)
+                result = self.icp.register(source, target, np.asarray(coarse.transformation),
+                                           cfg.max_correspondence_distance_m, recovery=True)
+                T_est = np.asarray(result.transformation)
+                if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
+                    continue
+                if not turned:
+                    best_plain_fitness = max(best_plain_fitness, float(result.fitness))
+                elif result.fitness <= best_plain_fitness:
+                    continue  # a turned guess that fits no better is a local minimum
+                if retry and (self.trust.relatively_unfit(float(result.fitness))
+                              or self.motion.jumped(T_pred, T_est, stamp_ns)):
+                    continue
+                if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
+                    status = 'fallback_implausible'
+                    continue
+                if best is None or result.fitness > best[0].fitness:
+                    best = (result, T_est, velocity)
         if best is None:
             return Match(status, T_pred, 0.0, 0.0, None)
         result, T_est, velocity = best
