@@ -196,16 +196,12 @@ class RegistrationConfig:
     # k x recovery_yaw_rate_step_rps, k = 1..recovery_yaw_guesses, either way (0: none). At
     # the onset of a fast turn in open ground (a headland past the block's edge) ICP from a
     # guess without the turn slides along the track instead of turning: the ground fits any
-    # yaw, and the far row ends that fix it are outside the correspondence gate. A turned fit
-    # counts only if its fitness beats every plain guess's fit, refused ones included, by
-    # recovery_turn_fitness_margin: where the plain guesses find the pose, a turned one finds
-    # the same within noise (fitness within ~0.006 on drives 202 and 221), and a near tie
-    # going either way changed a later pivot (held-out 202: 2.58 m ATE against 0.28 m without
-    # a margin). At the edge, the turn fitted 0.11-0.15 better than the slide. Edge drive
-    # 221: 57 m -> see docs/registration.md (the margin was chosen on 202 and 221).
+    # yaw, and the far row ends that fix it are outside the correspondence gate. Turned
+    # guesses are tried only when no other guess gives an acceptable fit, and a turned fit
+    # must fit better than every other guess's, refused ones included (else it is a local
+    # minimum, not a turn). Edge drive 221: 57 m -> 0.23 m ATE (docs/registration.md).
     recovery_yaw_guesses: int = 2
     recovery_yaw_rate_step_rps: float = 1.0
-    recovery_turn_fitness_margin: float = 0.02
     # The solver of default mode: 'open3d' (its ICP: one residual type for every pair) or
     # 'gauss_newton' (core/gauss_newton.py: a residual type and weight per pair, set by
     # residual_model). Paper mode always uses open3d's point-to-point ICP.
@@ -331,8 +327,7 @@ class RegistrationConfig:
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
-        for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness',
-                     'recovery_turn_fitness_margin'):
+        for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
         if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
@@ -724,9 +719,9 @@ class ScanRegistration:
         """Re-acquire against the map from a few initial guesses (the motion model's, from
         the last trusted pose). From each: a coarse ICP with a widened correspondence
         distance, then the normal one with more iterations. The plausible fit with the best
-        fitness wins; no jump check (the guesses are rough). A fit from a turned guess counts
-        only if its fitness beats every plain guess's fit (refused ones included) by
-        `recovery_turn_fitness_margin`.
+        fitness wins; no jump check (the guesses are rough). Only when no plain guess gives
+        one are turned guesses tried, and a turned fit must fit better than every plain
+        guess's, refused ones included.
 
         `retry`: a second chance for a scan whose match from the prediction failed, with the
         current velocity as the one before the loss; the fit must pass every check a match
@@ -736,27 +731,31 @@ class ScanRegistration:
         source, target = to_cloud(source_xyz), self.local_map.cloud
         wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
         best, status = None, 'fallback_low_fitness'
-        plain = self.motion.reacquisition_guesses(stamp_ns, retry)
         best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
-        for k, (velocity, init) in enumerate(plain + self.motion.turn_guesses(stamp_ns, retry)):
-            coarse = self.icp.register(source, target, init, wide_m)
-            result = self.icp.register(source, target, np.asarray(coarse.transformation),
-                                       cfg.max_correspondence_distance_m, recovery=True)
-            T_est = np.asarray(result.transformation)
-            if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
-                continue
-            if k < len(plain):
-                best_plain_fitness = max(best_plain_fitness, float(result.fitness))
-            elif result.fitness <= best_plain_fitness + cfg.recovery_turn_fitness_margin:
-                continue  # no clearly better fit than the plain guesses': not a turn
-            if retry and (self.trust.relatively_unfit(float(result.fitness))
-                          or self.motion.jumped(T_pred, T_est, stamp_ns)):
-                continue
-            if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
-                status = 'fallback_implausible'
-                continue
-            if best is None or result.fitness > best[0].fitness:
-                best = (result, T_est, velocity)
+        for turned in (False, True):
+            if turned and best is not None:
+                break  # turned guesses are the last resort: a plain guess fitted
+            guesses = (self.motion.turn_guesses(stamp_ns, retry) if turned
+                       else self.motion.reacquisition_guesses(stamp_ns, retry))
+            for velocity, init in guesses:
+                coarse = self.icp.register(source, target, init, wide_m)
+                result = self.icp.register(source, target, np.asarray(coarse.transformation),
+                                           cfg.max_correspondence_distance_m, recovery=True)
+                T_est = np.asarray(result.transformation)
+                if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
+                    continue
+                if not turned:
+                    best_plain_fitness = max(best_plain_fitness, float(result.fitness))
+                elif result.fitness <= best_plain_fitness:
+                    continue  # a turned guess that fits no better is a local minimum
+                if retry and (self.trust.relatively_unfit(float(result.fitness))
+                              or self.motion.jumped(T_pred, T_est, stamp_ns)):
+                    continue
+                if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
+                    status = 'fallback_implausible'
+                    continue
+                if best is None or result.fitness > best[0].fitness:
+                    best = (result, T_est, velocity)
         if best is None:
             return Match(status, T_pred, 0.0, 0.0, None)
         result, T_est, velocity = best
