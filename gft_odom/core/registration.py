@@ -199,7 +199,8 @@ class RegistrationConfig:
     # yaw, and the far row ends that fix it are outside the correspondence gate. Turned
     # guesses are tried only when no other guess gives an acceptable fit, and a turned fit
     # must fit better than every other guess's, refused ones included (else it is a local
-    # minimum, not a turn). Edge drive 221: 57 m -> 0.23 m ATE (docs/registration.md).
+    # minimum, not a turn). Edge drives 221 / 222: ATE 57 / 60 m -> 5.6 / 33 m: better, but
+    # still lost; a drive whose plain guesses never fail is unchanged (docs/registration.md).
     recovery_yaw_guesses: int = 2
     recovery_yaw_rate_step_rps: float = 1.0
     # The solver of default mode: 'open3d' (its ICP: one residual type for every pair) or
