@@ -40,11 +40,13 @@ DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
 # Session 6 made anchors the default (a keyframe leaving the window leaves its points in the
 # map); the rows of the studies before spell out that they had none.
 NO_ANCHORS = (('registration.map_anchors', False),)
+# Session 7 added turned guesses to re-acquisition (the last resort); the rows before had none.
+NO_TURN_GUESSES = (('registration.recovery_yaw_guesses', 0),)
 PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_points', 80000),
                      ('registration.map_keyframe_eviction', 'oldest'),
                      ('registration.keyframe_rotation_rad', 0.2),
                      ('registration.map_voxel_keeps', 'newest'),
-                     ('registration.retry_failed_match', False)) + NO_ANCHORS
+                     ('registration.retry_failed_match', False)) + NO_ANCHORS + NO_TURN_GUESSES
 # Before issue 15: a 15-keyframe map.
 ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
                                              ('registration.map_max_points', 40000))
@@ -55,7 +57,9 @@ ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
     Entry('gft_odom + deskew', 'default+gft', (('registration.deskew', True),)),
-    Entry('gft_odom without anchors (session 5 default)', 'default+gft', NO_ANCHORS),
+    Entry('gft_odom without turned guesses (session 6 default)', 'default+gft', NO_TURN_GUESSES),
+    Entry('gft_odom without anchors (session 5 default)', 'default+gft',
+          NO_ANCHORS + NO_TURN_GUESSES),
     Entry('kiss-icp', 'kiss-icp'),
     Entry('kiss-icp (evalio)', 'kiss-icp-evalio'),
     Entry('GenZ-ICP', 'genz-icp'),
@@ -85,14 +89,16 @@ ABLATION_ENTRIES = (
 # point-to-point rows).
 _GN = (('registration.solver', 'gauss_newton'), ('registration.convergence_m', 5e-4),
        ('registration.residual_model', 'frequency'), ('registration.rough_weight', 0.0)
-       ) + NO_ANCHORS
+       ) + NO_ANCHORS + NO_TURN_GUESSES
 ABLATION_ENTRIES += (
     Entry('GN, frequency as weight', 'default+gft', _GN),
     Entry('GN, no frequency (--no-filter)', 'default', _GN),
     Entry('GN, shuffled frequency', 'default+gft',
           _GN + (('pipeline.shuffle_frequencies', True),)),
-    Entry('GN, map planarity (GenZ-style)', 'default+gft', _GN[:2] + NO_ANCHORS + (
-        ('registration.residual_model', 'planarity'), ('registration.rough_residual', 'point'))),
+    Entry('GN, map planarity (GenZ-style)', 'default+gft',
+          _GN[:2] + NO_ANCHORS + NO_TURN_GUESSES + (
+              ('registration.residual_model', 'planarity'),
+              ('registration.rough_residual', 'point'))),
 )
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
