@@ -199,10 +199,15 @@ class RegistrationConfig:
     # yaw, and the far row ends that fix it are outside the correspondence gate. Turned
     # guesses are tried only when no other guess gives an acceptable fit, and a turned fit
     # must fit better than every other guess's, refused ones included (else it is a local
-    # minimum, not a turn). Edge drives 221 / 222: ATE 57 / 60 m -> 5.6 / 33 m: better, but
+    # minimum, not a turn). Edge drives 221 / 222: ATE 57 / 60 m -> 5.6 / 38 m: better, but
     # still lost; a drive whose plain guesses never fail is unchanged (docs/registration.md).
     recovery_yaw_guesses: int = 2
     recovery_yaw_rate_step_rps: float = 1.0
+    # ... and only when the best plain fit is below this x the recent matches' median fitness:
+    # a missed turn leaves every plain fit poor (edge drive 221: 0.77-0.80, ~0.92-0.95 before),
+    # while a platform beyond the speed bound fits well and is refused on every scan (the
+    # turned guesses would only add their cost there: 103 ms median in the node test).
+    recovery_turn_relative_fitness: float = 0.95
     # The solver of default mode: 'open3d' (its ICP: one residual type for every pair) or
     # 'gauss_newton' (core/gauss_newton.py: a residual type and weight per pair, set by
     # residual_model). Paper mode always uses open3d's point-to-point ICP.
@@ -328,7 +333,8 @@ class RegistrationConfig:
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
-        for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness'):
+        for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness',
+                     'recovery_turn_relative_fitness'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
         if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
@@ -418,6 +424,13 @@ class TrustPolicy:
         """Below `min_relative_fitness` x the median fitness of the recent trusted matches."""
         return (len(self.recent_fitness) >= RECENT_FITNESS_MIN and fitness
                 < self.config.min_relative_fitness * float(np.median(self.recent_fitness)))
+
+    def explains_poorly(self, fitness: float) -> bool:
+        """Below `recovery_turn_relative_fitness` x the median fitness of the recent trusted
+        matches (False while there are too few to tell)."""
+        bound = self.config.recovery_turn_relative_fitness
+        return (len(self.recent_fitness) >= RECENT_FITNESS_MIN
+                and fitness < bound * float(np.median(self.recent_fitness)))
 
     def trusted(self, fitness: float | None) -> None:
         """A trusted pose ends the fallback run; a match's `fitness` joins the recent ones."""
@@ -734,8 +747,11 @@ class ScanRegistration:
         best, status = None, 'fallback_low_fitness'
         best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
         for turned in (False, True):
-            if turned and best is not None:
-                break  # turned guesses are the last resort: a plain guess fitted
+            if turned and (best is not None or not self.trust.explains_poorly(best_plain_fitness)):
+                # The last resort, and only for a poor fit: a plain fit that explains the scan
+                # as well as the recent matches was refused for the bounds or the jump, not a
+                # missed turn (a platform beyond the speed bound: every scan lands here).
+                break
             guesses = (self.motion.turn_guesses(stamp_ns, retry) if turned
                        else self.motion.reacquisition_guesses(stamp_ns, retry))
             for velocity, init in guesses:
