@@ -734,8 +734,9 @@ class ScanRegistration:
         the last trusted pose). From each: a coarse ICP with a widened correspondence
         distance, then the normal one with more iterations. The plausible fit with the best
         fitness wins; no jump check (the guesses are rough). Only when no plain guess gives
-        one are turned guesses tried, and a turned fit must fit better than every plain
-        guess's, refused ones included.
+        one, and their best fit explains the scan poorly (`TrustPolicy.explains_poorly`), are
+        turned guesses tried; a turned fit must fit better than every plain guess's, refused
+        ones included.
 
         `retry`: a second chance for a scan whose match from the prediction failed, with the
         current velocity as the one before the loss; the fit must pass every check a match
