@@ -189,14 +189,12 @@ class MotionModel:
         turn rate extrapolated over a long gap throws the guess sideways). `retry`: the
         current velocity stands for the one before the loss."""
         velocities = [np.zeros(6)]
-        before = self.capped(self.velocity if retry else self.velocity_before_loss)
+        before = self._before_loss(retry)
         if np.any(before):
             velocities.append(before)
         if np.any(before[:3]) and np.any(before[3:]):
             velocities.append(np.r_[0.0, 0.0, 0.0, before[3:]])
-        _, elapsed_s = self.since_trusted(stamp_ns, self.T_world_trusted)
-        return [(velocity, self.T_world_trusted @ delta_of_twist(velocity, max(elapsed_s, 0.0)))
-                for velocity in velocities]
+        return self._from_trusted(velocities, self._elapsed_since_trusted(stamp_ns))
 
     def turn_guesses(self, stamp_ns: int,
                      retry: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -207,18 +205,31 @@ class MotionModel:
         match covers from the prediction (and a stamp 30 ms after a scan is more likely a
         copy than a turn: the fault suite's mirrored copies)."""
         cfg = self.config
-        _, elapsed_s = self.since_trusted(stamp_ns, self.T_world_trusted)
+        elapsed_s = self._elapsed_since_trusted(stamp_ns)
         if elapsed_s < 0.5 * cfg.scan_period_s:
             return []
-        before = self.capped(self.velocity if retry else self.velocity_before_loss)
-        guesses = []
+        before = self._before_loss(retry)
+        velocities = []
         for k in range(1, cfg.recovery_yaw_guesses + 1):
             for sign in (-1.0, 1.0):
                 turned = before.copy()
                 turned[2] += sign * k * cfg.recovery_yaw_rate_step_rps
-                turned = self.capped(turned)
-                guesses.append((turned, self.T_world_trusted @ delta_of_twist(turned, elapsed_s)))
-        return guesses
+                velocities.append(self.capped(turned))
+        return self._from_trusted(velocities, elapsed_s)
+
+    def _before_loss(self, retry: bool) -> np.ndarray:
+        """The velocity re-acquisition starts from, capped (a retry's: the current one)."""
+        return self.capped(self.velocity if retry else self.velocity_before_loss)
+
+    def _elapsed_since_trusted(self, stamp_ns: int) -> float:
+        return max(self.since_trusted(stamp_ns, self.T_world_trusted)[1], 0.0)
+
+    def _from_trusted(self, velocities: list[np.ndarray],
+                      elapsed_s: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(velocity, initial pose) pairs: each velocity over `elapsed_s` from the last
+        trusted pose."""
+        return [(velocity, self.T_world_trusted @ delta_of_twist(velocity, elapsed_s))
+                for velocity in velocities]
 
     # ------------------------------------------------------------ state updates
 

@@ -422,15 +422,13 @@ class TrustPolicy:
 
     def relatively_unfit(self, fitness: float) -> bool:
         """Below `min_relative_fitness` x the median fitness of the recent trusted matches."""
-        return (len(self.recent_fitness) >= RECENT_FITNESS_MIN and fitness
-                < self.config.min_relative_fitness * float(np.median(self.recent_fitness)))
+        return self.below_recent(fitness, self.config.min_relative_fitness)
 
-    def explains_poorly(self, fitness: float) -> bool:
-        """Below `recovery_turn_relative_fitness` x the median fitness of the recent trusted
-        matches (False while there are too few to tell)."""
-        bound = self.config.recovery_turn_relative_fitness
+    def below_recent(self, fitness: float, ratio: float) -> bool:
+        """Below `ratio` x the median fitness of the recent trusted matches (False while
+        there are too few to tell)."""
         return (len(self.recent_fitness) >= RECENT_FITNESS_MIN
-                and fitness < bound * float(np.median(self.recent_fitness)))
+                and fitness < ratio * float(np.median(self.recent_fitness)))
 
     def trusted(self, fitness: float | None) -> None:
         """A trusted pose ends the fallback run; a match's `fitness` joins the recent ones."""
@@ -734,7 +732,7 @@ class ScanRegistration:
         the last trusted pose). From each: a coarse ICP with a widened correspondence
         distance, then the normal one with more iterations. The plausible fit with the best
         fitness wins; no jump check (the guesses are rough). Only when no plain guess gives
-        one, and their best fit explains the scan poorly (`TrustPolicy.explains_poorly`), are
+        one, and their best fit is below `recovery_turn_relative_fitness` x the recent ones, are
         turned guesses tried; a turned fit must fit better than every plain guess's, refused
         ones included.
 
@@ -748,7 +746,8 @@ class ScanRegistration:
         best, status = None, 'fallback_low_fitness'
         best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
         for turned in (False, True):
-            if turned and (best is not None or not self.trust.explains_poorly(best_plain_fitness)):
+            if turned and (best is not None or not self.trust.below_recent(
+                    best_plain_fitness, cfg.recovery_turn_relative_fitness)):
                 # The last resort, and only for a poor fit: a plain fit that explains the scan
                 # as well as the recent matches was refused for the bounds or the jump, not a
                 # missed turn (a platform beyond the speed bound: every scan lands here).
