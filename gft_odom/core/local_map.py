@@ -9,6 +9,13 @@ Anchors (`anchor_smoothness` set): when a keyframe leaves the window, its smooth
 (ground, trunks, posts: what looks the same from any side) stay in the map as anchors for as
 long as they are within range; its canopy goes with it. A row met again from its other side
 then registers against what it showed before, not against foliage seen from elsewhere.
+
+Rough anchors (`rough_anchor_view_rad` set as well): the rest of a leaving keyframe (canopy,
+and every point when no frequency is known) stays too, but is served only while the newest
+keyframe sees it from about the side it was measured from (within that angle of its beam
+seen backwards). Porous canopy returns depend on where they were seen from: the crown's
+other face is a different cloud, a metre or two away, that pulls a scan from the far lane
+sideways. Smooth points look the same from every side and are served from anywhere.
 """
 
 from __future__ import annotations
@@ -70,7 +77,8 @@ class LocalMap:
                  normal_neighbours: int, with_normals: bool = True,
                  with_covariances: bool = False, eviction: str = 'oldest',
                  voxel_keeps: str = 'oldest', anchor_smoothness: float | None = None,
-                 anchor_max_points: int = 2_000_000):
+                 anchor_max_points: int = 2_000_000,
+                 rough_anchor_view_rad: float | None = None):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -90,6 +98,9 @@ class LocalMap:
         self.anchor_smoothness = anchor_smoothness
         # Memory bound of a long run: beyond it the anchors farthest from the sensor go.
         self.anchor_max_points = anchor_max_points
+        # Rough points stay too, served only when seen from within this angle of where they
+        # were measured from; None: rough points leave with their keyframe.
+        self.rough_anchor_view_rad = rough_anchor_view_rad
         self._clear_anchors()
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
@@ -169,27 +180,40 @@ class LocalMap:
         return self._anchor_points.shape[0]
 
     def _anchor(self, keyframe, centre_xyz: np.ndarray) -> None:
-        """Keep the smooth points of a keyframe leaving the window (a filled voxel keeps
-        its older anchor). The anchors are kept sorted by voxel key (membership by binary
-        search); over `anchor_max_points` the farthest from `centre_xyz` are dropped."""
+        """Keep the smooth points of a keyframe leaving the window, and with rough anchors
+        the rest too. A filled voxel keeps its older anchor, unless that one is rough and
+        the new one smooth (a trunk first seen far off, as rough, is later seen near). The
+        anchors are kept sorted by voxel key (membership by binary search); over
+        `anchor_max_points` the farthest from `centre_xyz` are dropped."""
         T, points, smoothness = keyframe
         if self.anchor_smoothness is None:
             return
-        if self.anchor_smoothness <= 0.0:  # every point, with or without a frequency
-            smoothness = (np.full(points.shape[0], np.nan) if smoothness is None
-                          else smoothness)
-            smooth = np.arange(points.shape[0])
-        elif smoothness is None:
-            return
+        if smoothness is None:  # no frequency: nothing is known to be smooth
+            smoothness = np.full(points.shape[0], np.nan)
+        if self.anchor_smoothness <= 0.0 or self.rough_anchor_view_rad is not None:
+            chosen = np.arange(points.shape[0])  # every point (rough ones view-gated)
         else:
-            smooth = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
-        keys = voxel_keys(points[smooth], self.voxel_size_m)
-        keys, first = np.unique(keys, return_index=True)
-        smooth = smooth[first]
+            chosen = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
+        keys = voxel_keys(points[chosen], self.voxel_size_m)
+        # One point per voxel: the first, or where rough points come along the smoothest.
+        order = (np.lexsort((-np.nan_to_num(smoothness[chosen], nan=-np.inf), keys))
+                 if self.rough_anchor_view_rad is not None else np.argsort(keys, kind='stable'))
+        keys, chosen = keys[order], chosen[order]
+        head = np.r_[True, keys[1:] != keys[:-1]][:keys.shape[0]]
+        keys, chosen = keys[head], chosen[head]
         at = np.searchsorted(self._anchor_keys, keys)
         known = at < self._anchor_keys.shape[0]
         known[known] = self._anchor_keys[at[known]] == keys[known]
-        new = smooth[~known]
+        if self.rough_anchor_view_rad is not None and known.any():
+            # A smooth point takes over a rough anchor's voxel.
+            upgrade = np.flatnonzero(known)
+            upgrade = upgrade[self._is_smooth(smoothness[chosen[upgrade]])
+                              & ~self._is_smooth(self._anchor_smoothness_values[at[upgrade]])]
+            where = at[upgrade]
+            self._anchor_points[where] = points[chosen[upgrade]]
+            self._anchor_smoothness_values[where] = smoothness[chosen[upgrade]]
+            self._anchor_viewpoints[where] = T[:3, 3]
+        new = chosen[~known]
         keys = np.concatenate([self._anchor_keys, keys[~known]])
         order = np.argsort(keys, kind='stable')  # two sorted runs: a merge
         self._set_anchors(
@@ -205,6 +229,24 @@ class LocalMap:
             self._set_anchors(self._anchor_keys[keep], self._anchor_points[keep],
                               self._anchor_smoothness_values[keep],
                               self._anchor_viewpoints[keep])
+
+    def _is_smooth(self, smoothness: np.ndarray) -> np.ndarray:
+        """Served from any side: smoothness at or above the anchor threshold (NaN: never)."""
+        return np.asarray(smoothness) >= self.anchor_smoothness
+
+    def _served_anchors(self, centre_xyz: np.ndarray) -> np.ndarray:
+        """Indices of the anchors served to a keyframe at `centre_xyz`: every smooth one,
+        and a rough one only when seen from within `rough_anchor_view_rad` of the direction
+        it was measured from."""
+        if self.rough_anchor_view_rad is None or self.anchor_smoothness <= 0.0:
+            return np.arange(self.n_anchors)
+        to_view = self._anchor_viewpoints - self._anchor_points
+        to_centre = centre_xyz - self._anchor_points
+        dot = np.einsum('ij,ij->i', to_view, to_centre)
+        norms = np.sqrt(np.einsum('ij,ij->i', to_view, to_view)
+                        * np.einsum('ij,ij->i', to_centre, to_centre))
+        seen_alike = dot >= np.cos(self.rough_anchor_view_rad) * norms
+        return np.flatnonzero(self._is_smooth(self._anchor_smoothness_values) | seen_alike)
 
     def _set_anchors(self, keys, points, smoothness, viewpoints) -> None:
         """The anchors, as four aligned arrays sorted by voxel key."""
@@ -231,12 +273,13 @@ class LocalMap:
         keyframes = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
         parts = [(pts, s, np.broadcast_to(T[:3, 3], pts.shape), self._view_priority(pts, T))
                  for T, pts, s in keyframes]
-        if self.n_anchors:
+        served = self._served_anchors(centre_xyz) if self.n_anchors else np.zeros(0, int)
+        if served.shape[0]:
             # Anchors first: they are the oldest content, and a voxel they fill keeps them
             # (with 'nearest' they compete by their range from where they were seen).
-            offset = self._anchor_points - self._anchor_viewpoints
-            anchors = (self._anchor_points, self._anchor_smoothness_values,
-                       self._anchor_viewpoints,
+            points, viewpoints = self._anchor_points[served], self._anchor_viewpoints[served]
+            offset = points - viewpoints
+            anchors = (points, self._anchor_smoothness_values[served], viewpoints,
                        -np.einsum('ij,ij->i', offset, offset)
                        if self.voxel_keeps == 'nearest' else None)
             parts = [anchors] + parts

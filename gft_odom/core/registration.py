@@ -153,6 +153,11 @@ class RegistrationConfig:
     map_anchor_smoothness: float = 0.75
     # Memory bound of a long run (~64 bytes a point); beyond it the farthest anchors go.
     map_anchor_max_points: int = 2_000_000
+    # Rough anchors: > 0 keeps the rest of a leaving keyframe too (canopy; every point when
+    # there is no frequency), served only while the newest keyframe sees a point from within
+    # this angle of the side it was measured from. Porous canopy seen from the far lane is
+    # another cloud; smooth anchors are served from any side. 0: rough points leave.
+    map_anchor_rough_view_deg: float = 0.0
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
@@ -337,6 +342,9 @@ class RegistrationConfig:
                      'recovery_turn_relative_fitness'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
+        if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
+            raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
+                              f'{self.map_anchor_rough_view_deg}')
         if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
             raise ConfigError(f'motion_margin must be a finite number >= 0, got '
                               f'{self.motion_margin}')
@@ -399,7 +407,9 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
         normal_neighbours=cfg.normal_neighbours, eviction=cfg.map_keyframe_eviction,
         voxel_keeps=cfg.map_voxel_keeps,
         anchor_smoothness=cfg.map_anchor_smoothness if cfg.map_anchors else None,
-        anchor_max_points=cfg.map_anchor_max_points)
+        anchor_max_points=cfg.map_anchor_max_points,
+        rough_anchor_view_rad=(math.radians(cfg.map_anchor_rough_view_deg)
+                               if cfg.map_anchor_rough_view_deg > 0.0 else None))
 
 
 class TrustPolicy:

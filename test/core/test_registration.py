@@ -871,3 +871,70 @@ def test_anchors_are_bounded_by_dropping_the_farthest():
     # Keyframes 0, 10 and 20 left the window; the newest is at 30: 0 is the farthest.
     assert local_map.n_anchors == 2
     assert sorted(local_map.points_xyz[:, 0].round()) == [10.0, 20.0, 30.0]
+
+
+def test_rough_anchors_are_served_only_when_seen_from_their_side():
+    from gft_odom.core.local_map import LocalMap
+    # A smooth point (trunk) and a rough one (canopy) at y = 2, seen from the lane at y = 0.
+    local_map = LocalMap(0.1, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                         anchor_smoothness=0.75, rough_anchor_view_rad=np.radians(60.0))
+
+    def keyframe(x, y):
+        T = np.eye(4)
+        T[:2, 3] = x, y
+        return T
+
+    local_map.add_keyframe(np.array([[0.0, 2.0, 0.0], [0.5, 2.0, 2.0]]), keyframe(0.0, 0.0),
+                           np.array([0.9, 0.1]))
+    # The keyframe leaves the window; a new one is in the same lane, a little further on.
+    local_map.add_keyframe(np.array([[5.0, -3.0, 0.0]]), keyframe(1.0, 0.0), np.array([0.9]))
+    assert local_map.n_anchors == 2
+    served = {tuple(p) for p in local_map.points_xyz.round(1)}
+    assert {(0.0, 2.0, 0.0), (0.5, 2.0, 2.0)} <= served  # both seen from their own side
+    # From the far lane (y = 4) the canopy's other face is another cloud: only the trunk.
+    local_map.add_keyframe(np.array([[5.0, 6.0, 0.0]]), keyframe(1.0, 4.0), np.array([0.9]))
+    served = {tuple(p) for p in local_map.points_xyz.round(1)}
+    assert (0.0, 2.0, 0.0) in served and (0.5, 2.0, 2.0) not in served
+    # Without rough anchors the canopy leaves with its keyframe.
+    plain = LocalMap(0.1, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                     anchor_smoothness=0.75)
+    plain.add_keyframe(np.array([[0.0, 2.0, 0.0], [0.5, 2.0, 2.0]]), keyframe(0.0, 0.0),
+                       np.array([0.9, 0.1]))
+    plain.add_keyframe(np.array([[5.0, -3.0, 0.0]]), keyframe(1.0, 0.0), np.array([0.9]))
+    assert plain.n_anchors == 1
+
+
+def test_a_smooth_point_takes_over_a_rough_anchors_voxel():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(1.0, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                         anchor_smoothness=0.75, rough_anchor_view_rad=np.radians(60.0))
+    T = np.eye(4)
+    # First seen far off, as rough; then near, as smooth; the voxel's anchor becomes smooth.
+    for x, s in ((0.2, 0.1), (0.6, 0.9), (0.4, 0.2)):
+        local_map.add_keyframe(np.array([[x, 0.5, 0.5]]), T, np.array([s]))
+        T = T.copy()
+        T[0, 3] += 20.0
+    local_map.add_keyframe(np.array([[99.0, 0.5, 0.5]]), T, np.array([0.9]))
+    assert local_map.n_anchors == 1
+    # Served from the far side too (it is smooth): the voxel holds the smooth point.
+    assert 0.6 in local_map.points_xyz[:, 0].round(1).tolist()
+
+
+def test_without_frequencies_rough_anchors_keep_every_point_view_gated():
+    from gft_odom.core.local_map import LocalMap
+    local_map = LocalMap(0.1, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
+                         anchor_smoothness=0.75, rough_anchor_view_rad=np.radians(60.0))
+    T = np.eye(4)
+    local_map.add_keyframe(np.array([[0.0, 2.0, 0.0], [0.5, 2.0, 2.0]]), T)
+    T2 = T.copy()
+    T2[1, 3] = 4.0  # the far lane
+    local_map.add_keyframe(np.array([[5.0, 6.0, 0.0]]), T2)
+    assert local_map.n_anchors == 2
+    assert local_map.points_xyz.round(1).tolist() == [[5.0, 6.0, 0.0]]
+
+
+def test_rough_anchor_view_angle_is_validated():
+    with pytest.raises(ConfigError, match='map_anchor_rough_view_deg'):
+        RegistrationConfig(map_anchor_rough_view_deg=200.0).validate()
+    with pytest.raises(ConfigError, match='map_anchor_rough_view_deg'):
+        RegistrationConfig(map_anchor_rough_view_deg=float('nan')).validate()
