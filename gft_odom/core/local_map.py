@@ -195,12 +195,12 @@ class LocalMap:
         else:
             chosen = np.flatnonzero(smoothness >= self.anchor_smoothness)  # NaN: never
         keys = voxel_keys(points[chosen], self.voxel_size_m)
-        # One point per voxel: the first, or where rough points come along the smoothest.
+        # One point per voxel (np.unique keeps the first): where rough points come along,
+        # the smoothest first.
         order = (np.lexsort((-np.nan_to_num(smoothness[chosen], nan=-np.inf), keys))
-                 if self.rough_anchor_view_rad is not None else np.argsort(keys, kind='stable'))
-        keys, chosen = keys[order], chosen[order]
-        head = np.r_[True, keys[1:] != keys[:-1]][:keys.shape[0]]
-        keys, chosen = keys[head], chosen[head]
+                 if self.rough_anchor_view_rad is not None else slice(None))
+        keys, first = np.unique(keys[order], return_index=True)
+        chosen = chosen[order][first]
         at = np.searchsorted(self._anchor_keys, keys)
         known = at < self._anchor_keys.shape[0]
         known[known] = self._anchor_keys[at[known]] == keys[known]
@@ -234,12 +234,12 @@ class LocalMap:
         """Served from any side: smoothness at or above the anchor threshold (NaN: never)."""
         return np.asarray(smoothness) >= self.anchor_smoothness
 
-    def _served_anchors(self, centre_xyz: np.ndarray) -> np.ndarray:
-        """Indices of the anchors served to a keyframe at `centre_xyz`: every smooth one,
-        and a rough one only when seen from within `rough_anchor_view_rad` of the direction
-        it was measured from."""
+    def _served_anchors(self, centre_xyz: np.ndarray) -> np.ndarray | slice:
+        """Which anchors are served to a keyframe at `centre_xyz`: every smooth one, and a
+        rough one only when seen from within `rough_anchor_view_rad` of the direction it was
+        measured from. Ungated, every anchor (a slice: the arrays are not copied)."""
         if self.rough_anchor_view_rad is None or self.anchor_smoothness <= 0.0:
-            return np.arange(self.n_anchors)
+            return slice(None)
         to_view = self._anchor_viewpoints - self._anchor_points
         to_centre = centre_xyz - self._anchor_points
         dot = np.einsum('ij,ij->i', to_view, to_centre)
@@ -273,8 +273,8 @@ class LocalMap:
         keyframes = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
         parts = [(pts, s, np.broadcast_to(T[:3, 3], pts.shape), self._view_priority(pts, T))
                  for T, pts, s in keyframes]
-        served = self._served_anchors(centre_xyz) if self.n_anchors else np.zeros(0, int)
-        if served.shape[0]:
+        if self.n_anchors:
+            served = self._served_anchors(centre_xyz)
             # Anchors first: they are the oldest content, and a voxel they fill keeps them
             # (with 'nearest' they compete by their range from where they were seen).
             points, viewpoints = self._anchor_points[served], self._anchor_viewpoints[served]
