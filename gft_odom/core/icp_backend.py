@@ -1,7 +1,9 @@
 """One ICP call for scan registration, whichever solver runs it.
 
 open3d's ICP (point-to-point, point-to-plane or GICP; one residual type for every pair)
-serves paper mode and default mode with solver 'open3d'; the Gauss-Newton solver
+serves paper mode and default mode with solver 'open3d'; solver 'map_tree'
+(core/map_tree_icp.py) is the same point-to-plane ICP over a KD-tree the map keeps between
+rebuilds; the Gauss-Newton solver
 (core/gauss_newton.py: a residual type and weight per pair, core/residuals.py) serves default
 mode with solver 'gauss_newton'. The backend also tells the local map what its target must
 carry (normals, covariances, planarity) so that a rebuild computes it once.
@@ -16,6 +18,7 @@ import open3d as o3d
 
 from gft_odom.core.gauss_newton import GaussNewtonICP
 from gft_odom.core.local_map import LocalMap
+from gft_odom.core.map_tree_icp import MapTreeICP
 from gft_odom.core.residuals import make_residual_model
 
 if TYPE_CHECKING:
@@ -70,6 +73,12 @@ class IcpBackend:
             if config.residual_model == 'planarity':
                 local_map.smoothness_variation = config.rough_surface_variation
                 local_map.with_covariances = True  # computed once per map rebuild
+        # 'map_tree' (default mode, against the map): open3d's ICP over the map's KD-tree.
+        self.map_tree = None
+        if config.solver == 'map_tree' and config.mode == 'default':
+            self.map_tree = MapTreeICP(kernel_name, config.robust_kernel_scale_m,
+                                       config.convergence_relative, config.convergence_relative,
+                                       config.max_iterations)
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
         # the same with unknown kept NaN (frequency_affinity_m); set per scan.
         self.source_smoothness: np.ndarray | None = None
@@ -96,6 +105,9 @@ class IcpBackend:
                                         (init, self.config.motion_prior_weight)
                                         if prior and self.config.motion_prior_weight > 0.0
                                         else None)
+        if self.map_tree is not None and target is self.local_map.cloud:
+            return self.map_tree.register(np.asarray(source.points), self.local_map.target(),
+                                          init, distance_m, criteria.max_iteration)
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
                 self.config.gicp_epsilon, self.kernel)

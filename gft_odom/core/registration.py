@@ -24,6 +24,7 @@ downsample, deskew, match or re-acquire, trust, update the map, the result):
   plausibility, jumps, loss of track, the twists deskew assumes)
 - core/icp_backend.py: IcpBackend (one ICP call: open3d or the Gauss-Newton solver)
 - core/gauss_newton.py, core/residuals.py: the Gauss-Newton solver and its per-pair residuals
+- core/map_tree_icp.py: open3d's point-to-plane ICP over the map's own KD-tree
 - core/uncertainty.py: the information of the final pairs and the reported covariance
 - core/local_map.py: the keyframe local map (voxel downsampling too)
 - core/deskew.py: per-point times and motion compensation
@@ -83,7 +84,7 @@ MODES = ('default', 'paper')
 MAP_POINTS_FROM = ('registration', 'scan')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
-SOLVERS = ('open3d', 'gauss_newton')
+SOLVERS = ('open3d', 'gauss_newton', 'map_tree')
 VOXEL_PRIORITIES = ('first', 'smoothest')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
@@ -213,9 +214,11 @@ class RegistrationConfig:
     # while a platform beyond the speed bound fits well and is refused on every scan (the
     # turned guesses would only add their cost there: 103 ms median in the node test).
     recovery_turn_relative_fitness: float = 0.95
-    # The solver of default mode: 'open3d' (its ICP: one residual type for every pair) or
+    # The solver of default mode: 'open3d' (its ICP: one residual type for every pair),
     # 'gauss_newton' (core/gauss_newton.py: a residual type and weight per pair, set by
-    # residual_model). Paper mode always uses open3d's point-to-point ICP.
+    # residual_model) or 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane ICP step
+    # for step, over a KD-tree built once per map rebuild instead of once per call).
+    # Paper mode always uses open3d's point-to-point ICP.
     solver: str = 'open3d'
     # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
     # 'frequency' (the scan point's graph frequency decides: smooth -> plane, rough -> the
@@ -310,6 +313,9 @@ class RegistrationConfig:
         if not (math.isfinite(self.frequency_affinity_m) and self.frequency_affinity_m >= 0.0):
             raise ConfigError(f'frequency_affinity_m must be a finite number >= 0, '
                               f'got {self.frequency_affinity_m}')
+        if self.solver == 'map_tree' and self.resolved_estimation != 'point_to_plane':
+            raise ConfigError(f"solver 'map_tree' is point-to-plane ICP, got estimation "
+                              f"{self.estimation!r}")
         if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
             raise ConfigError("frequency_affinity_m needs solver 'gauss_newton' (open3d's "
                               "ICP pairs by distance alone)")

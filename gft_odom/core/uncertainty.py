@@ -33,7 +33,8 @@ def icp_information(source_xyz: np.ndarray, target, result, rmse: float) -> np.n
     directions (ground only: x, y, yaw) as small information, hence large variances.
     Point-to-point rows are [I, -[a]x].
     """
-    if isinstance(result, IcpResult):  # Gauss-Newton: its own weighted normal matrix
+    if isinstance(result, IcpResult) and result.information is not None:
+        # Gauss-Newton: its own weighted normal matrix
         return result.information
     pairs = np.asarray(result.correspondence_set)
     if pairs.shape[0] < 6:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from helpers import box_scene, target_of
 from scipy.spatial.transform import Rotation
 
 from gft_odom.core.gauss_newton import (
@@ -16,29 +17,6 @@ from gft_odom.core.gauss_newton import (
 )
 from gft_odom.core.geometry import invert_transform, make_transform
 from gft_odom.core.residuals import PlaneResidual, SmoothnessResidual
-
-
-def box_scene(seed: int = 0, corridor: bool = False) -> np.ndarray:
-    """Points on a ground plane, two long walls along x and (unless `corridor`) posts."""
-    rng = np.random.default_rng(seed)
-    ground = np.c_[rng.uniform(-15, 15, (4000, 2)), np.zeros(4000)]
-    walls = []
-    for y in (-4.0, 4.0):
-        walls.append(np.c_[rng.uniform(-15, 15, 1500), np.full(1500, y),
-                           rng.uniform(0.0, 3.0, 1500)])
-    parts = [ground] + walls
-    if not corridor:
-        for px, py in ((-6.0, 2.0), (3.0, -2.5), (9.0, 1.0), (-1.0, -1.5)):
-            angle = rng.uniform(0, 2 * np.pi, 400)
-            parts.append(np.c_[px + 0.3 * np.cos(angle), py + 0.3 * np.sin(angle),
-                               rng.uniform(0.0, 2.5, 400)])
-    return np.concatenate(parts)
-
-
-def target_of(points: np.ndarray) -> MapTarget:
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(15))
-    return MapTarget(points, np.asarray(cloud.normals))
 
 
 @pytest.fixture(scope='module')
