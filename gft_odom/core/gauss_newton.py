@@ -65,6 +65,18 @@ class IcpResult:
     n_iterations: int
 
 
+def kernel_loss(kind: str, e: np.ndarray, scale: float) -> np.ndarray:
+    """The loss rho(e) whose IRLS weight `kernel_weights` gives (rho'(e) / e)."""
+    if kind == 'tukey':
+        u2 = np.minimum(e / scale, 1.0) ** 2
+        return scale * scale / 6.0 * (1.0 - (1.0 - u2) ** 3)
+    if kind == 'huber':
+        return np.where(e <= scale, 0.5 * e * e, scale * (e - 0.5 * scale))
+    if kind == 'cauchy':
+        return 0.5 * scale * scale * np.log1p((e / scale) ** 2)
+    return 0.5 * e * e
+
+
 def kernel_weights(kind: str, e: np.ndarray, scale: float) -> np.ndarray:
     """IRLS weight of residual norms `e` (the same kernels open3d offers)."""
     if kind == 'tukey':

@@ -73,12 +73,15 @@ class IcpBackend:
             if config.residual_model == 'planarity':
                 local_map.smoothness_variation = config.rough_surface_variation
                 local_map.with_covariances = True  # computed once per map rebuild
-        # 'map_tree' (default mode, against the map): open3d's ICP over the map's KD-tree.
+        # 'map_tree' (default mode, against the map): open3d's point-to-plane ICP over the
+        # map's KD-tree (gicp and point_to_point: open3d's own ICP).
         self.map_tree = None
-        if config.solver == 'map_tree' and config.mode == 'default':
+        if (config.solver == 'map_tree' and config.mode == 'default'
+                and self.estimation == 'point_to_plane'):
             self.map_tree = MapTreeICP(kernel_name, config.robust_kernel_scale_m,
                                        config.convergence_relative, config.convergence_relative,
-                                       config.max_iterations)
+                                       config.max_iterations,
+                                       anderson_memory=config.anderson_memory)
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
         # the same with unknown kept NaN (frequency_affinity_m); set per scan.
         self.source_smoothness: np.ndarray | None = None

@@ -8,9 +8,11 @@ import pytest
 from helpers import box_scene, target_of
 from scipy.spatial.transform import Rotation
 
+from gft_odom.core.gauss_newton import kernel_loss, kernel_weights
 from gft_odom.core.geometry import invert_transform, make_transform
-from gft_odom.core.map_tree_icp import ExactNearest, MapTreeICP, euler_update
-from gft_odom.core.registration import RegistrationConfig
+from gft_odom.core.icp_backend import IcpBackend
+from gft_odom.core.map_tree_icp import AndersonPose, ExactNearest, MapTreeICP, euler_update
+from gft_odom.core.registration import RegistrationConfig, ScanRegistration
 from gft_odom.errors import ConfigError
 
 reg = o3d.pipelines.registration
@@ -62,6 +64,61 @@ def test_recovers_a_known_transform(scene):
     assert result.information is None  # icp_information computes it from the pairs
 
 
+def crowns(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Two rows of porous crowns over flat ground: a scan samples other returns of the same
+    foliage than the map, and nearest-neighbour ICP slides slowly towards its optimum."""
+    centres = np.c_[np.repeat([-3.0, 3.0], 8), np.tile(np.arange(-14.0, 14.0, 3.5), 2),
+                    np.full(16, 2.0)]
+    foliage = centres[rng.integers(0, 16, n)] + rng.normal(0.0, 0.6, (n, 3))
+    ground = np.c_[rng.uniform(-15, 15, (n // 3, 2)), rng.normal(0.0, 0.01, n // 3)]
+    return np.concatenate([foliage, ground])
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_anderson_acceleration_needs_fewer_iterations_at_no_higher_energy(seed):
+    rng = np.random.default_rng(seed)
+    target = target_of(crowns(rng, 12000))
+    T_true = make_transform(Rotation.from_euler('z', 1.0, degrees=True).as_matrix(),
+                            [0.15, 0.05, 0.0])
+    source = crowns(rng, 4000) @ invert_transform(T_true)[:3, :3].T + invert_transform(
+        T_true)[:3, 3]
+    plain_icp = MapTreeICP('tukey', 0.3, 1e-4, 1e-4, 100)
+    accelerated_icp = MapTreeICP('tukey', 0.3, 1e-4, 1e-4, 100, anderson_memory=3)
+    plain = plain_icp.register(source, target, np.eye(4), 1.0)
+    accelerated = accelerated_icp.register(source, target, np.eye(4), 1.0)
+    assert accelerated_icp.n_accelerated > 0
+    assert accelerated.n_iterations < plain.n_iterations
+
+    def energy(result):
+        world = source @ result.transformation[:3, :3].T + result.transformation[:3, 3]
+        return plain_icp._energy(world, target, result.correspondence_set, 1.0)
+    assert energy(accelerated) <= energy(plain)
+
+
+def test_anderson_chart_round_trip_and_extrapolation():
+    reference = make_transform(Rotation.from_euler('xyz', [0.1, -0.2, 1.0]).as_matrix(),
+                               [100.0, -50.0, 2.0])
+    anderson = AndersonPose(reference, 3)
+    T = make_transform(Rotation.from_euler('z', 0.01).as_matrix(), [0.05, 0.0, 0.0]) @ reference
+    np.testing.assert_allclose(anderson.pose(anderson.chart(T)), T, atol=1e-12)
+    # A linear contraction x -> x* + 0.8 (x - x*): two steps tell Anderson where x* is.
+    fixed = np.array([0.01, 0.0, -0.02, 0.3, -0.1, 0.05])
+    x = np.zeros(6)
+    assert anderson.propose(anderson.pose(x), anderson.pose(fixed + 0.8 * (x - fixed))) is None
+    x = fixed + 0.8 * (x - fixed)
+    proposal = anderson.propose(anderson.pose(x), anderson.pose(fixed + 0.8 * (x - fixed)))
+    np.testing.assert_allclose(anderson.chart(proposal), fixed, atol=1e-9)
+
+
+@pytest.mark.parametrize('kind', ['tukey', 'huber', 'cauchy', 'none'])
+def test_kernel_loss_is_what_the_weights_integrate(kind):
+    e = np.linspace(0.01, 0.6, 50)
+    h = 1e-6
+    slope = (kernel_loss(kind, e + h, 0.3) - kernel_loss(kind, e - h, 0.3)) / (2 * h)
+    np.testing.assert_allclose(slope / e, kernel_weights(kind, e, 0.3), atol=1e-5)
+    assert kernel_loss(kind, np.zeros(1), 0.3)[0] == 0.0
+
+
 def test_exact_nearest_matches_a_full_search_as_the_points_move(scene):
     target, source = scene
     nearest = ExactNearest(target, 1.0)
@@ -93,7 +150,16 @@ def test_euler_update_is_open3d_order():
     np.testing.assert_allclose(euler_update(x)[:3, 3], x[3:])
 
 
-def test_map_tree_needs_point_to_plane():
-    with pytest.raises(ConfigError, match='map_tree'):
-        RegistrationConfig(solver='map_tree', estimation='gicp').validate()
-    RegistrationConfig(solver='map_tree').validate()
+def test_map_tree_is_the_point_to_plane_solver():
+    local_map = ScanRegistration.from_config(RegistrationConfig()).local_map
+    assert IcpBackend(RegistrationConfig(solver='map_tree'), local_map).map_tree is not None
+    for estimation in ('gicp', 'point_to_point'):  # open3d's own ICP runs them
+        config = RegistrationConfig(solver='map_tree', estimation=estimation)
+        config.validate()
+        assert IcpBackend(config, local_map).map_tree is None
+    assert IcpBackend(RegistrationConfig(solver='open3d'), local_map).map_tree is None
+    with pytest.raises(ConfigError, match='anderson_memory'):
+        RegistrationConfig(solver='open3d', anderson_memory=3).validate()
+    with pytest.raises(ConfigError, match='anderson_memory'):
+        RegistrationConfig(solver='map_tree', anderson_memory=-1).validate()
+    RegistrationConfig(solver='map_tree', anderson_memory=3).validate()
