@@ -221,7 +221,7 @@ class RegistrationConfig:
     # residual type and weight per pair, set by residual_model). 'map_tree' is
     # point-to-plane: with estimation gicp or point_to_point, open3d's ICP runs. Paper mode
     # always uses open3d's point-to-point ICP.
-    solver: str = 'open3d'
+    solver: str = 'map_tree'
     # Solver 'map_tree': Anderson acceleration over this many past steps (0: off, open3d's
     # iterates). ICP's pose slides towards the optimum a near-constant share per iteration;
     # the extrapolation gets there in fewer iterations, kept only where it lowers the energy.
