@@ -114,6 +114,10 @@ def test_input_follows_the_publishers_and_save_map_answers(start_node, orchard_b
     node.create_publisher(PointCloud2, TOPIC, qos_profile_sensor_data)
     assert spin_until(lambda: _node_subscription(node) is not None and _node_subscription(
         node).qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT, 10.0), log.read_text()
+    # The graph shows the new subscription before the node has logged it: wait for the line
+    # (stopping at once raced it on a loaded machine).
+    assert spin_until(lambda: f'input {TOPIC}: best_effort' in log.read_text(), 10.0), (
+        log.read_text())
     assert stop_node_process(proc) == 0
     text = log.read_text()
     assert f'input {TOPIC}: reliable' in text and f'input {TOPIC}: best_effort' in text
