@@ -121,8 +121,7 @@ class MapTreeICP:
                 max_distance_m: float) -> float:
         """The robust point-to-plane energy: each pair's kernel loss, and a point without a
         pair the loss of the correspondence distance (so losing pairs is not a gain)."""
-        r = np.einsum('ij,ij->i', world[pairs[:, 0]] - target.points[pairs[:, 1]],
-                      target.normals[pairs[:, 1]])
+        _, r = _plane_residuals(world, target, pairs)
         unpaired = world.shape[0] - pairs.shape[0]
         return float(np.sum(kernel_loss(self.kernel, np.abs(r), self.kernel_scale_m))
                      + unpaired * kernel_loss(self.kernel, np.array([max_distance_m]),
@@ -145,8 +144,7 @@ class MapTreeICP:
         if pairs.shape[0] == 0:
             return np.eye(4)
         p = world[pairs[:, 0]]
-        normals = target.normals[pairs[:, 1]]
-        r = np.einsum('ij,ij->i', p - target.points[pairs[:, 1]], normals)
+        normals, r = _plane_residuals(world, target, pairs, p)
         J = np.empty((p.shape[0], 6))
         J[:, 0] = p[:, 1] * normals[:, 2] - p[:, 2] * normals[:, 1]  # p x n
         J[:, 1] = p[:, 2] * normals[:, 0] - p[:, 0] * normals[:, 2]
@@ -161,6 +159,14 @@ class MapTreeICP:
         if not np.all(np.isfinite(x)):
             return np.eye(4)
         return euler_update(x)
+
+
+def _plane_residuals(world: np.ndarray, target: MapTarget, pairs: np.ndarray,
+                     paired_xyz: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(the pairs' map normals, their point-to-plane residuals n . (p - q))."""
+    p = world[pairs[:, 0]] if paired_xyz is None else paired_xyz
+    normals = target.normals[pairs[:, 1]]
+    return normals, np.einsum('ij,ij->i', p - target.points[pairs[:, 1]], normals)
 
 
 class AndersonPose:

@@ -22,7 +22,7 @@ downsample, deskew, match or re-acquire, trust, update the map, the result):
   the reference update), TrustPolicy (fitness against the recent matches, the fallback run)
 - core/motion_model.py: MotionModel (velocity, trusted pose, physical bounds, prediction,
   plausibility, jumps, loss of track, the twists deskew assumes)
-- core/icp_backend.py: IcpBackend (one ICP call: open3d or the Gauss-Newton solver)
+- core/icp_backend.py: IcpBackend (one ICP call: map_tree, open3d or the Gauss-Newton solver)
 - core/gauss_newton.py, core/residuals.py: the Gauss-Newton solver and its per-pair residuals
 - core/map_tree_icp.py: open3d's point-to-plane ICP over the map's own KD-tree
 - core/uncertainty.py: the information of the final pairs and the reported covariance
@@ -319,8 +319,6 @@ class RegistrationConfig:
         if not (math.isfinite(self.frequency_affinity_m) and self.frequency_affinity_m >= 0.0):
             raise ConfigError(f'frequency_affinity_m must be a finite number >= 0, '
                               f'got {self.frequency_affinity_m}')
-        if self.anderson_memory < 0:
-            raise ConfigError(f'anderson_memory must be >= 0, got {self.anderson_memory}')
         if self.anderson_memory and self.solver != 'map_tree':
             raise ConfigError("anderson_memory needs solver 'map_tree'")
         if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
@@ -347,7 +345,8 @@ class RegistrationConfig:
         minimum = {'max_iterations': 1, 'map_max_points': 100, 'map_keyframes': 1,
                    'map_anchor_max_points': 1,
                    'normal_neighbours': 5, 'min_points': 3, 'max_consecutive_fallbacks': 1,
-                   'deskew_velocity_window': 1, 'recovery_yaw_guesses': 0}
+                   'deskew_velocity_window': 1, 'recovery_yaw_guesses': 0,
+                   'anderson_memory': 0}
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
