@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec, sec_nanosec_to_ns
-from gft_odom.core.geometry import base_to_sensor_poses, rpy_transform, sensor_to_base_poses
+from gft_odom.core.geometry import (
+    base_to_sensor_poses,
+    least_variance_axis,
+    rpy_transform,
+    sensor_to_base_poses,
+)
 
 
 def _random_poses(n: int, seed: int) -> np.ndarray:
@@ -36,3 +41,26 @@ def test_stamps_convert_exactly():
     assert sec_nanosec_to_ns(1_690_000_000, 123_456_789) == stamp_ns
     assert ns_to_sec_nanosec(NS_PER_S - 1) == (0, 999_999_999)
     assert ns_to_sec_nanosec(-1) == (-1, 999_999_999)
+
+
+def test_least_variance_axis_is_eighs_smallest_eigenvector():
+    rng = np.random.default_rng(3)
+    # Planes of random tilt and noise, isotropic blobs, lines (two equal small eigenvalues:
+    # the eigh fallback), and a matrix of zeros.
+    flat = rng.normal(size=(500, 15, 3)) * [1.0, 0.5, 1e-3]
+    rotations = np.linalg.qr(rng.normal(size=(500, 3, 3)))[0]
+    clouds = np.concatenate([flat @ rotations, rng.normal(size=(50, 15, 3)),
+                             np.linspace(0, 1, 15)[None, :, None] * rng.normal(size=(20, 1, 3))])
+    clouds = clouds - clouds.mean(axis=1, keepdims=True)
+    C = np.concatenate([np.matmul(clouds.transpose(0, 2, 1), clouds), np.zeros((1, 3, 3))])
+    axis = least_variance_axis(C)
+    np.testing.assert_allclose(np.linalg.norm(axis, axis=1), 1.0, atol=1e-9)
+    values, vectors = np.linalg.eigh(C)
+    # The eigenvalue along the axis is the smallest one, to the matrix's scale.
+    along = np.einsum('mi,mij,mj->m', axis, C, axis)
+    np.testing.assert_allclose(along, values[:, 0], atol=1e-9 * (1.0 + values[:, 2].max()))
+    # Where the smallest eigenvalue is well separated, the axis is eigh's, up to sign.
+    separated = values[:, 1] > 10.0 * values[:, 0] + 1e-9
+    assert separated.sum() >= 500
+    dot = np.abs(np.einsum('ij,ij->i', axis[separated], vectors[separated, :, 0]))
+    np.testing.assert_allclose(dot, 1.0, atol=1e-9)
