@@ -234,7 +234,7 @@ def class_pulls(source: np.ndarray, surface: np.ndarray, local_map: LocalMap,
     world = transform_points(T, source)
     dist, idx = target.tree.query(world, distance_upper_bound=max_distance_m)
     ok = np.isfinite(dist)
-    n = target.normals[idx[ok]]
+    n = target.normals_at(idx[ok])
     r = np.einsum('ij,ij->i', n, world[ok] - target.points[idx[ok]])
     u = np.abs(r) / scale_m
     w = np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from gft_odom.core.geometry import least_variance_axis
 from gft_odom.core.residuals import Correspondences, normal_equations
 
 KERNELS = ('none', 'tukey', 'huber', 'cauchy')
@@ -38,7 +39,9 @@ class MapTarget:
     """What the solver matches against: map points, their normals, optional smoothness."""
 
     points: np.ndarray  # (n, 3) world
-    normals: np.ndarray  # (n, 3) unit
+    # (n, 3) unit; None: each map point's normal is estimated when a pair first asks for it
+    # (`normals_at`), from the same kNN neighbourhood open3d's estimate_normals uses.
+    normals: np.ndarray | None
     smoothness: np.ndarray | None = None  # (n,) in [0, 1], for map-side models
     tree: cKDTree | None = None
     # (n,) the smoothness of the scan point each map point came from (NaN: unknown), for
@@ -46,11 +49,77 @@ class MapTarget:
     point_smoothness: np.ndarray | None = None
     # (n, 3) where the sensor stood when each map point was measured (None: unknown).
     viewpoints: np.ndarray | None = None
+    normal_neighbours: int = 15  # the kNN of an estimated normal (the point itself included)
 
     def __post_init__(self) -> None:
         self.squared_norms = np.einsum('ij,ij->i', self.points, self.points)
         if self.tree is None:
             self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+        if self.normals is None:
+            n = self.points.shape[0]
+            self._k = min(self.normal_neighbours, n)
+            self._estimated = np.zeros((n, 3))
+            self._known = np.zeros(n, dtype=bool)
+            # Per estimated normal: its neighbours and the distance of the farthest, to tell
+            # after a rebuild whether the neighbourhood is still the same.
+            self._neighbours = np.zeros((n, self._k), dtype=np.int64)
+            self._reach_m = np.zeros(n)
+        self.n_normals_estimated = 0  # for the tests and the benchmarks
+        self.n_normals_inherited = 0
+
+    def normals_at(self, index: np.ndarray) -> np.ndarray:
+        """The unit normals of the map points `index`.
+
+        Estimated on demand: a scan pairs with a few thousand of the ~40k map points, so a
+        rebuild that estimated every normal (most of a keyframe's cost) did mostly waste."""
+        if self.normals is not None:
+            return self.normals[index]
+        missing = index[~self._known[index]]
+        if missing.shape[0]:
+            self._estimate_normals(np.unique(missing))
+        return self._estimated[index]
+
+    def inherit_normals(self, previous: 'MapTarget', new_of_old: np.ndarray) -> None:
+        """Take over the normals `previous` (the map before a rebuild) estimated, for the
+        points still in this map (`new_of_old`: each old point's index here, -1 when gone)
+        whose k nearest neighbours are still theirs: none of them left, and no new point
+        came nearer than the farthest. Those normals are what estimating them again would
+        give, so most of a rebuilt map needs none estimated."""
+        if (self.normals is not None or previous.normals is not None
+                or previous._k != self._k or self._k == 0):
+            return
+        old = np.flatnonzero(previous._known & (new_of_old >= 0))
+        if old.shape[0] == 0:
+            return
+        neighbours = new_of_old[previous._neighbours[old]]
+        intact = np.all(neighbours >= 0, axis=1)
+        added = np.ones(self.points.shape[0], dtype=bool)
+        added[new_of_old[new_of_old >= 0]] = False
+        if added.any():
+            reach = previous._reach_m[old]
+            nearest, _ = cKDTree(self.points[added]).query(previous.points[old],
+                                                           distance_upper_bound=reach.max())
+            intact &= ~(nearest < reach)
+        old, neighbours = old[intact], neighbours[intact]
+        at = new_of_old[old]
+        self._estimated[at] = previous._estimated[old]
+        self._neighbours[at] = neighbours
+        self._reach_m[at] = previous._reach_m[old]
+        self._known[at] = True
+        self.n_normals_inherited += at.shape[0]
+
+    def _estimate_normals(self, rows: np.ndarray) -> None:
+        """PCA normals: the least-variance axis of each point's nearest neighbours."""
+        distance, neighbours = self.tree.query(self.points[rows], k=self._k)
+        neighbours = neighbours.reshape(rows.shape[0], self._k)
+        around = self.points[neighbours]
+        around = around - around.mean(axis=1, keepdims=True)
+        self._estimated[rows] = least_variance_axis(np.matmul(around.transpose(0, 2, 1),
+                                                              around))
+        self._neighbours[rows] = neighbours
+        self._reach_m[rows] = np.asarray(distance).reshape(rows.shape[0], self._k)[:, -1]
+        self._known[rows] = True
+        self.n_normals_estimated += rows.shape[0]
 
 
 @dataclass
@@ -171,7 +240,7 @@ class GaussNewtonICP:
         beam = (None if target.viewpoints is None or target.viewpoints.shape[0] == 0
                 else target.points[tgt] - target.viewpoints[tgt])
         c = Correspondences(world[valid], world[valid] - T[:3, 3], target.points[tgt],
-                            target.normals[tgt], s, beam)
+                            target.normals_at(tgt), s, beam)
         return np.column_stack([valid, tgt]), c
 
     def _normal_equations(self, c: Correspondences) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,8 @@ serves paper mode and default mode with solver 'open3d'; solver 'map_tree'
 rebuilds; the Gauss-Newton solver
 (core/gauss_newton.py: a residual type and weight per pair, core/residuals.py) serves default
 mode with solver 'gauss_newton'. The backend also tells the local map what its target must
-carry (normals, covariances, planarity) so that a rebuild computes it once.
+carry (normals, covariances, planarity) so that a rebuild computes it once (or, with
+map_normals 'on_demand', the numpy solvers' normals as pairs use them).
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ class IcpBackend:
                                     config.rough_weight, config.rough_depth_ratio),
                 config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
                 config.convergence_m, config.frequency_affinity_m)
-            local_map.with_normals = True
+            # 'on_demand': the map's target estimates the normals its pairs use.
+            local_map.with_normals = config.map_normals == 'rebuild'
             if config.residual_model == 'planarity':
                 local_map.smoothness_variation = config.rough_surface_variation
                 local_map.with_covariances = True  # computed once per map rebuild
@@ -82,6 +84,8 @@ class IcpBackend:
                                        config.convergence_relative, config.convergence_relative,
                                        config.max_iterations,
                                        anderson_memory=config.anderson_memory)
+            # 'on_demand': the map's target estimates the normals its pairs use.
+            local_map.with_normals = config.map_normals == 'rebuild'
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
         # the same with unknown kept NaN (frequency_affinity_m); set per scan.
         self.source_smoothness: np.ndarray | None = None
@@ -92,6 +96,14 @@ class IcpBackend:
         """The smoothness of the scan about to be matched (None: not used)."""
         self.source_smoothness = source_smoothness
         self.point_smoothness = point_smoothness
+
+    def matched(self, target: o3d.geometry.PointCloud):
+        """What a match against `target` was solved on: the map's `MapTarget` when a numpy
+        solver matched against the map (its normals are there), else `target` itself."""
+        if (self.solver is not None or self.map_tree is not None) and \
+                target is self.local_map.cloud:
+            return self.local_map.target()
+        return target
 
     def register(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
                  init: np.ndarray, distance_m: float, recovery: bool = False,

@@ -113,6 +113,7 @@ class LocalMap:
         # Per served point: where the sensor stood when it was measured (its beam's origin).
         self.viewpoints = np.zeros((0, 3))
         self._target: MapTarget | None = None
+        self._previous_target: MapTarget | None = None
 
     def __len__(self) -> int:
         return len(self.cloud.points)
@@ -125,9 +126,11 @@ class LocalMap:
         self.smoothness = None
         self.viewpoints = np.zeros((0, 3))
         self._target = None
+        self._previous_target = None
 
     def target(self) -> MapTarget:
-        """The map as the Gauss-Newton solver's target (KD-tree built once per rebuild)."""
+        """The map as the solvers' target (KD-tree built once per rebuild; without
+        `with_normals` its normals are estimated as pairs ask for them)."""
         if self._target is None:
             smoothness = None
             if self.smoothness_variation is not None:  # with_covariances is set with it
@@ -135,10 +138,26 @@ class LocalMap:
                                if self.cloud.has_covariances() else np.zeros((len(self), 3, 3)))
                 smoothness = smoothness_from_covariances(covariances, self.smoothness_variation)
             self._target = MapTarget(np.asarray(self.cloud.points),
-                                     np.asarray(self.cloud.normals), smoothness,
+                                     np.asarray(self.cloud.normals)
+                                     if self.cloud.has_normals() else None, smoothness,
                                      point_smoothness=self.smoothness,
-                                     viewpoints=self.viewpoints)
+                                     viewpoints=self.viewpoints,
+                                     normal_neighbours=self.normal_neighbours)
+            previous, self._previous_target = self._previous_target, None
+            if previous is not None:
+                self._target.inherit_normals(previous, self._index_of(previous.points))
         return self._target
+
+    def _index_of(self, points_xyz: np.ndarray) -> np.ndarray:
+        """Each point's index in the served map, -1 where it is not there (one point per
+        voxel: found by its voxel key, then checked to be the same point)."""
+        served = self.points_xyz
+        keys = voxel_keys(served, self.voxel_size_m)
+        order = np.argsort(keys)
+        wanted = voxel_keys(points_xyz, self.voxel_size_m)
+        at = order[np.minimum(np.searchsorted(keys, wanted, sorter=order), keys.shape[0] - 1)]
+        same = (keys[at] == wanted) & np.all(served[at] == points_xyz, axis=1)
+        return np.where(same, at, -1)
 
     @property
     def points_xyz(self) -> np.ndarray:
@@ -310,4 +329,6 @@ class LocalMap:
             if self.with_covariances:
                 cloud.estimate_covariances(search)
         self.cloud = cloud
+        if self._target is not None:  # its normals carry over to the next target
+            self._previous_target = self._target
         self._target = None

@@ -165,7 +165,7 @@ def _plane_residuals(world: np.ndarray, target: MapTarget, pairs: np.ndarray,
                      paired_xyz: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(the pairs' map normals, their point-to-plane residuals n . (p - q))."""
     p = world[pairs[:, 0]] if paired_xyz is None else paired_xyz
-    normals = target.normals[pairs[:, 1]]
+    normals = target.normals_at(pairs[:, 1])
     return normals, np.einsum('ij,ij->i', p - target.points[pairs[:, 1]], normals)
 
 

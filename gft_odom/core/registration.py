@@ -85,6 +85,7 @@ MAP_POINTS_FROM = ('registration', 'scan')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
 SOLVERS = ('open3d', 'gauss_newton', 'map_tree')
+MAP_NORMALS = ('rebuild', 'on_demand')
 VOXEL_PRIORITIES = ('first', 'smoothest')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
@@ -226,6 +227,12 @@ class RegistrationConfig:
     # iterates). ICP's pose slides towards the optimum a near-constant share per iteration;
     # the extrapolation gets there in fewer iterations, kept only where it lowers the energy.
     anderson_memory: int = 0
+    # When the map's kNN normals are estimated (solvers 'map_tree' and 'gauss_newton'):
+    # 'rebuild' (every map point's, at each keyframe: open3d's estimate_normals, most of a
+    # keyframe scan's time) or 'on_demand' (a point's when a pair first uses it, carried over
+    # a rebuild while its neighbours stay its own: the same normals, so the same trajectory;
+    # the keyframe scans' spike is spread over the scans, docs/registration.md session 12).
+    map_normals: str = 'rebuild'
     # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
     # 'frequency' (the scan point's graph frequency decides: smooth -> plane, rough -> the
     # rough residual), 'planarity' (the map neighbourhood's covariance decides, GenZ-ICP-style).
@@ -304,6 +311,12 @@ class RegistrationConfig:
                               f'got {self.voxel_priority!r}')
         if self.solver not in SOLVERS:
             raise ConfigError(f'solver must be one of {SOLVERS}, got {self.solver!r}')
+        if self.map_normals not in MAP_NORMALS:
+            raise ConfigError(f'map_normals must be one of {MAP_NORMALS}, '
+                              f'got {self.map_normals!r}')
+        if self.map_normals == 'on_demand' and self.solver == 'open3d':
+            raise ConfigError("map_normals 'on_demand' needs solver 'map_tree' or "
+                              "'gauss_newton' (open3d's ICP reads every map normal)")
         if self.residual_model not in RESIDUAL_MODELS:
             raise ConfigError(f'residual_model must be one of {RESIDUAL_MODELS}, '
                               f'got {self.residual_model!r}')
@@ -746,7 +759,7 @@ class ScanRegistration:
         if self.motion.jumped(T_pred, T_est, stamp_ns):
             return Match('fallback_diverged', T_pred, fitness, rmse, None)
         return Match('ok', T_est, fitness, rmse,
-                     icp_information(source_xyz, target, result, rmse))
+                     icp_information(source_xyz, self.icp.matched(target), result, rmse))
 
     def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
                    retry: bool = False) -> Match:
@@ -802,8 +815,8 @@ class ScanRegistration:
             implied = self.motion.implied_velocity(stamp_ns, T_est)
             velocity = velocity if implied is None else implied
         rmse = float(result.inlier_rmse)
-        return Match('recovered', T_est, float(result.fitness), rmse,
-                     icp_information(source_xyz, target, result, rmse), velocity)
+        information = icp_information(source_xyz, self.icp.matched(target), result, rmse)
+        return Match('recovered', T_est, float(result.fitness), rmse, information, velocity)
 
     # ------------------------------------------------------------ the reference
 

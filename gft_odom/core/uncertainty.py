@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gft_odom.core.gauss_newton import IcpResult
+from gft_odom.core.gauss_newton import IcpResult, MapTarget
 
 if TYPE_CHECKING:
     from gft_odom.core.registration import RegistrationConfig
@@ -41,8 +41,10 @@ def icp_information(source_xyz: np.ndarray, target, result, rmse: float) -> np.n
         return None
     R_target_sensor = np.asarray(result.transformation)[:3, :3]
     a = source_xyz[pairs[:, 0]] @ R_target_sensor.T
-    if target.has_normals():
-        n = np.asarray(target.normals)[pairs[:, 1]]
+    # The map as its solver saw it (normals estimated on demand), or open3d's cloud.
+    n = (target.normals_at(pairs[:, 1]) if isinstance(target, MapTarget)
+         else np.asarray(target.normals)[pairs[:, 1]] if target.has_normals() else None)
+    if n is not None:
         J = np.hstack([n, np.cross(a, n)])
         H = J.T @ J
     else:

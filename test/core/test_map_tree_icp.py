@@ -8,7 +8,7 @@ import pytest
 from helpers import box_scene, target_of
 from scipy.spatial.transform import Rotation
 
-from gft_odom.core.gauss_newton import kernel_loss, kernel_weights
+from gft_odom.core.gauss_newton import MapTarget, kernel_loss, kernel_weights
 from gft_odom.core.geometry import invert_transform, make_transform
 from gft_odom.core.icp_backend import IcpBackend
 from gft_odom.core.map_tree_icp import AndersonPose, ExactNearest, MapTreeICP, euler_update
@@ -163,3 +163,94 @@ def test_map_tree_is_the_point_to_plane_solver():
     with pytest.raises(ConfigError, match='anderson_memory'):
         RegistrationConfig(solver='map_tree', anderson_memory=-1).validate()
     RegistrationConfig(solver='map_tree', anderson_memory=3).validate()
+
+
+def test_normals_on_demand_are_open3ds_and_estimated_once(scene):
+    eager, source = scene
+    lazy = MapTarget(eager.points, None)
+    index = np.array([5, 17, 5, 900, 17, 3000])
+    dot = np.einsum('ij,ij->i', lazy.normals_at(index), eager.normals[index])
+    np.testing.assert_allclose(np.abs(dot), 1.0, atol=1e-6)  # the sign is arbitrary in both
+    assert lazy.n_normals_estimated == 4  # each point once, repeats not again
+    lazy.normals_at(index[:3])
+    assert lazy.n_normals_estimated == 4
+
+
+def test_icp_on_demand_normals_matches_precomputed(scene):
+    eager, source = scene
+    lazy = MapTarget(eager.points, None)
+    icp = MapTreeICP('tukey', 0.3, 1e-6, 1e-6, 30)
+    ours, theirs = icp.register(source, lazy, np.eye(4), 1.0), icp.register(source, eager,
+                                                                            np.eye(4), 1.0)
+    np.testing.assert_allclose(ours.transformation, theirs.transformation, atol=1e-9)
+    # Only the map points some pair used have a normal.
+    assert 0 < lazy.n_normals_estimated < eager.points.shape[0]
+    assert lazy.n_normals_estimated == np.count_nonzero(lazy._known)
+
+
+def test_registration_leaves_map_normals_to_the_solver():
+    points = box_scene(seed=6)
+    registration = ScanRegistration(RegistrationConfig(solver='map_tree',
+                                                       map_normals='on_demand'))
+    registration.register(points, 0)
+    registration.register(points, 100_000_000)
+    assert not registration.local_map.cloud.has_normals()  # the rebuild skipped them
+    result = registration.register(points, 200_000_000)
+    assert result.status == 'ok'
+    target = registration.local_map.target()
+    assert 0 < target.n_normals_estimated <= len(registration.local_map)
+    # The information comes from the pairs' point-to-plane rows [n, a x n] (without the
+    # normals it would fall back to point-to-point rows, whose translation block is m I).
+    translation = result.information[:3, :3]
+    assert np.all(np.isfinite(result.information))
+    assert not np.allclose(translation, np.eye(3) * translation[0, 0], rtol=0.05)
+
+
+def test_a_rebuilt_map_inherits_the_normals_it_would_estimate():
+    from gft_odom.core.local_map import LocalMap
+    rng = np.random.default_rng(8)
+    scene = box_scene(seed=8)
+    local_map = LocalMap(0.1, 100.0, 100_000, 2, 1.0, 0.2, 15, with_normals=False)
+    local_map.add_keyframe(scene[:4000], np.eye(4))
+    before = local_map.target()
+    before.normals_at(np.arange(len(local_map)))
+    # A second keyframe: some voxels gain a point nearer than a normal's neighbours were.
+    T = np.eye(4)
+    T[0, 3] = 1.5
+    local_map.add_keyframe(scene[4000:] + rng.normal(0.0, 0.01, scene[4000:].shape), T)
+    after = local_map.target()
+    inherited = after._known.copy()
+    assert 0 < after.n_normals_inherited == np.count_nonzero(inherited) < len(local_map)
+    # Some points stayed but lost their normal: a new neighbour came within its reach.
+    survivors = np.count_nonzero(local_map._index_of(before.points) >= 0)
+    assert after.n_normals_inherited < survivors
+    fresh = MapTarget(after.points, None)
+    every = np.arange(len(local_map))
+    dot = np.einsum('ij,ij->i', after.normals_at(every), fresh.normals_at(every))
+    np.testing.assert_allclose(np.abs(dot), 1.0, atol=1e-9)
+    np.testing.assert_array_equal(np.sort(after._neighbours[inherited], axis=1),
+                                  np.sort(fresh._neighbours[inherited], axis=1))
+
+
+def test_on_demand_normals_give_the_rebuilds_trajectory():
+    points = box_scene(seed=9)
+    poses = {}
+    for normals in ('rebuild', 'on_demand'):
+        registration = ScanRegistration(RegistrationConfig(map_normals=normals,
+                                                           keyframe_distance_m=0.1))
+        moved = []
+        for i in range(6):
+            T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
+                               [0.12 * i, 0.02 * i, 0.0])
+            moved.append(registration.register(
+                (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
+                i * 100_000_000).T_world_sensor)
+        poses[normals] = np.array(moved)
+    np.testing.assert_allclose(poses['on_demand'], poses['rebuild'], atol=1e-9)
+
+
+def test_on_demand_normals_need_a_numpy_solver():
+    with pytest.raises(ConfigError, match='on_demand'):
+        RegistrationConfig(solver='open3d', map_normals='on_demand').validate()
+    with pytest.raises(ConfigError, match='map_normals'):
+        RegistrationConfig(map_normals='sometimes').validate()
