@@ -144,7 +144,7 @@ class LocalMap:
                                      viewpoints=self.viewpoints,
                                      normal_neighbours=self.normal_neighbours)
             previous, self._previous_target = self._previous_target, None
-            if previous is not None:
+            if previous is not None and self._target.normals is None:
                 self._target.inherit_normals(previous, self._index_of(previous.points))
         return self._target
 
