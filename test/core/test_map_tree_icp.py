@@ -232,12 +232,13 @@ def test_a_rebuilt_map_inherits_the_normals_it_would_estimate():
                                   np.sort(fresh._neighbours[inherited], axis=1))
 
 
-def test_on_demand_normals_give_the_rebuilds_trajectory():
+@pytest.mark.parametrize('solver', ['map_tree', 'gauss_newton'])
+def test_on_demand_normals_give_the_rebuilds_trajectory(solver):
     points = box_scene(seed=9)
     poses = {}
     for normals in ('rebuild', 'on_demand'):
-        registration = ScanRegistration(RegistrationConfig(map_normals=normals,
-                                                           keyframe_distance_m=0.1))
+        registration = ScanRegistration(RegistrationConfig(
+            solver=solver, map_normals=normals, keyframe_distance_m=0.1))
         moved = []
         for i in range(6):
             T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
