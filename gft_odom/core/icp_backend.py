@@ -70,8 +70,6 @@ class IcpBackend:
                                     config.rough_weight, config.rough_depth_ratio),
                 config.robust_kernel, config.robust_kernel_scale_m, config.max_iterations,
                 config.convergence_m, config.frequency_affinity_m)
-            # 'on_demand': the map's target estimates the normals its pairs use.
-            local_map.with_normals = config.map_normals == 'rebuild'
             if config.residual_model == 'planarity':
                 local_map.smoothness_variation = config.rough_surface_variation
                 local_map.with_covariances = True  # computed once per map rebuild
@@ -84,6 +82,7 @@ class IcpBackend:
                                        config.convergence_relative, config.convergence_relative,
                                        config.max_iterations,
                                        anderson_memory=config.anderson_memory)
+        if self.solves_on_map_target:
             # 'on_demand': the map's target estimates the normals its pairs use.
             local_map.with_normals = config.map_normals == 'rebuild'
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
@@ -97,11 +96,16 @@ class IcpBackend:
         self.source_smoothness = source_smoothness
         self.point_smoothness = point_smoothness
 
+    @property
+    def solves_on_map_target(self) -> bool:
+        """A numpy solver ('gauss_newton' or 'map_tree') matches against the map's
+        `MapTarget` rather than open3d's cloud."""
+        return self.solver is not None or self.map_tree is not None
+
     def matched(self, target: o3d.geometry.PointCloud):
         """What a match against `target` was solved on: the map's `MapTarget` when a numpy
         solver matched against the map (its normals are there), else `target` itself."""
-        if (self.solver is not None or self.map_tree is not None) and \
-                target is self.local_map.cloud:
+        if self.solves_on_map_target and target is self.local_map.cloud:
             return self.local_map.target()
         return target
 

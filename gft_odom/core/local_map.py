@@ -144,7 +144,7 @@ class LocalMap:
                                      viewpoints=self.viewpoints,
                                      normal_neighbours=self.normal_neighbours)
             previous, self._previous_target = self._previous_target, None
-            if previous is not None and self._target.normals is None:
+            if previous is not None:
                 self._target.inherit_normals(previous, self._index_of(previous.points))
         return self._target
 
@@ -329,6 +329,6 @@ class LocalMap:
             if self.with_covariances:
                 cloud.estimate_covariances(search)
         self.cloud = cloud
-        if self._target is not None:  # its normals carry over to the next target
-            self._previous_target = self._target
+        if self._target is not None and self._target.normals is None:
+            self._previous_target = self._target  # its estimated normals carry over
         self._target = None
