@@ -225,6 +225,7 @@ class OdometryPipeline:
         """One scan through acceptance, crop, filter, registration. `freqs`: frequencies of the
         cropped scan computed earlier (the band search re-filters them with many masks).
         A rejected scan gives a result with status 'rejected_<reason>' and the last pose."""
+        self.update_map()  # the previous scan's, when its caller did not
         t0 = time.perf_counter()
         if self._trim_pending:
             release_free_memory()
@@ -259,7 +260,7 @@ class OdometryPipeline:
         else:
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
                                              kept.time_offset_s, nu=self._registration_nu(
-                                                 nu, scan.stamp_ns))
+                                                 nu, scan.stamp_ns), defer_map_update=True)
         t3 = time.perf_counter()
         # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map.
         if self.use_filter and not reg.status.startswith('fallback'):
@@ -324,6 +325,15 @@ class OdometryPipeline:
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 
+    def update_map(self) -> float:
+        """The map work the last `register_frame` left (a keyframe: the map's rebuild, its
+        normals and KD-tree); the seconds it took, 0 when there was none.
+
+        `register_frame` returns the pose first, so that a caller can publish it and then
+        call this; the next `register_frame` does it when the caller did not. Either way
+        the poses are the same."""
+        return self.registration.update_map()
+
     def map_snapshot(self, latest: FrameResult | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
         """The registration's current map in the odom frame (REP 105, as the trajectory):
@@ -333,6 +343,7 @@ class OdometryPipeline:
         map: its reference, the last trusted scan, is returned."""
         from scipy.spatial import cKDTree
         reg = self.registration
+        reg.update_map()
         points = reg.local_map.points_xyz
         if not len(points) and reg._prev_scan is not None:
             points = transform_points(reg.T_world_trusted, np.asarray(reg._prev_scan.points))

@@ -44,7 +44,7 @@ class ReplayResult:
 
     sensor_trajectory: Trajectory
     base_trajectory: Trajectory
-    latency_s: np.ndarray  # (n_scans,) decode + pipeline
+    latency_s: np.ndarray  # (n_scans,) decode + pipeline: the time to the pose
     stage_s: dict[str, np.ndarray]
     points_in: np.ndarray
     points_kept: np.ndarray
@@ -57,6 +57,11 @@ class ReplayResult:
     rejected: dict[str, int] = field(default_factory=dict)
     ground_truth: Trajectory | None = None
     ground_truth_is_gps: bool = False
+    # (n_scans,) the map work after each pose (`OdometryPipeline.update_map`); None when the
+    # method does it inside its time to the pose.
+    map_update_s: np.ndarray | None = None
+    # (n_scans,) each latency's scan stamp: the latency at the sensor's rate needs them.
+    scan_stamps_ns: np.ndarray | None = None
 
 
 def scan_count(reader: ScanBagReader, max_scans: int | None) -> int:
@@ -93,7 +98,7 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
     pipeline = OdometryPipeline(config)
     rng = np.random.default_rng(0)
-    latency, points_in, points_kept, statuses = [], [], [], []
+    latency, map_update, stamps, points_in, points_kept, statuses = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
     map_xyz, map_nu = [], []
     rejected: Counter[str] = Counter()
@@ -109,7 +114,10 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                 rejected[result.rejection.reason] += 1
                 continue
             latency.append(t_decode + result.timings_s['pipeline'])
-            for name, value in {'decode': t_decode, **result.timings_s}.items():
+            map_update.append(pipeline.update_map())  # after the pose, as the node does
+            stamps.append(result.stamp_ns)
+            for name, value in {'decode': t_decode, **result.timings_s,
+                                'map_update': map_update[-1]}.items():
                 stages.setdefault(name, []).append(value)
             points_in.append(result.n_points_in)
             points_kept.append(result.n_points_kept)
@@ -134,7 +142,8 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         map_points_world=np.concatenate(map_xyz) if map_xyz else np.zeros((0, 3)),
         map_nu=np.concatenate(map_nu) if map_nu else np.zeros(0), skipped_messages=skipped,
         rejected=dict(rejected), ground_truth=ground_truth,
-        ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
+        ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path),
+        map_update_s=np.asarray(map_update), scan_stamps_ns=np.asarray(stamps, dtype=np.int64))
     replay.metrics = summarize(replay, config)
     # Said once in the log when it happened; kept with the results.
     replay.metrics['motion_bounds'] = pipeline.bounds_watch.message
@@ -164,6 +173,47 @@ def estimate_for_ground_truth(replay: ReplayResult, config: GftOdomConfig) -> Tr
     return replay.sensor_trajectory
 
 
+def latency_at_rate_s(stamps_ns: np.ndarray, latency_s: np.ndarray,
+                      busy_s: np.ndarray) -> np.ndarray:
+    """Each scan's latency had the scans arrived at their stamps (the sensor's rate) to one
+    worker: the wait until the work of the scans before it (`busy_s`: each one's time to
+    the pose and its map update) is done, plus its own time to the pose.
+
+    A replay runs as fast as it can, so its latency is never delayed by a queue; on a robot
+    a scan whose predecessor's work overran the sensor period waits."""
+    arrival_s = (np.asarray(stamps_ns, dtype=np.int64) - int(stamps_ns[0])) * 1e-9
+    out = np.empty(arrival_s.shape[0])
+    free_s = arrival_s[0]
+    for i, (arrive, latency, busy) in enumerate(zip(arrival_s, latency_s, busy_s)):
+        start = max(arrive, free_s)  # a clock jump back cannot make the worker idle
+        out[i] = start - arrive + latency
+        free_s = start + busy
+    return out
+
+
+def timing_metrics(replay: ReplayResult) -> dict:
+    """Latency (time to the pose), the busy time per scan (with the map update after it)
+    and the latency at the sensor's rate, in ms: median, p95 (and the busy time's mean)."""
+    lat_ms = 1e3 * replay.latency_s
+    n = int(lat_ms.size)
+    if not n:
+        return {'latency_median_ms': None, 'latency_p95_ms': None}
+    metrics = {'latency_median_ms': float(np.median(lat_ms)),
+               'latency_p95_ms': float(np.percentile(lat_ms, 95))}
+    busy_s = replay.latency_s
+    if replay.map_update_s is not None and replay.map_update_s.shape[0] == n:
+        busy_s = replay.latency_s + replay.map_update_s
+        metrics['map_update_p95_ms'] = float(np.percentile(1e3 * replay.map_update_s, 95))
+    metrics.update({'busy_median_ms': float(np.median(1e3 * busy_s)),
+                    'busy_p95_ms': float(np.percentile(1e3 * busy_s, 95)),
+                    'busy_mean_ms': float(np.mean(1e3 * busy_s))})
+    if replay.scan_stamps_ns is not None and replay.scan_stamps_ns.shape[0] == n:
+        at_rate_ms = 1e3 * latency_at_rate_s(replay.scan_stamps_ns, replay.latency_s, busy_s)
+        metrics.update({'latency_at_rate_median_ms': float(np.median(at_rate_ms)),
+                        'latency_at_rate_p95_ms': float(np.percentile(at_rate_ms, 95))})
+    return metrics
+
+
 def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
     """Flat JSON-friendly metrics: accuracy (with ground truth), latency, points, failures."""
     lat_ms = 1e3 * replay.latency_s
@@ -176,8 +226,7 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
         'registration_mode': config.registration.mode,
         'band_mask': list(config.spectral.band_mask),
         'n_bands': config.spectral.n_bands,
-        'latency_median_ms': float(np.median(lat_ms)) if n else None,
-        'latency_p95_ms': float(np.percentile(lat_ms, 95)) if n else None,
+        **timing_metrics(replay),
         'points_in_mean': float(replay.points_in.mean()) if n else 0.0,
         'points_kept_mean': float(kept.mean()) if kept.size else 0.0,
         'points_kept_fraction': (float(kept.sum() / max(replay.points_in[valid].sum(), 1))
@@ -192,8 +241,10 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
         metrics[f'{stage}_median_ms'] = float(np.median(values) * 1e3)
     duration_s = (replay.sensor_trajectory.stamps_s[-1] - replay.sensor_trajectory.stamps_s[0]
                   if n > 1 else float('nan'))
-    metrics['real_time_factor'] = (float(duration_s / replay.latency_s.sum())
-                                   if n > 1 and replay.latency_s.sum() > 0 else None)
+    busy_s = float(replay.latency_s.sum() + (0.0 if replay.map_update_s is None
+                                             else replay.map_update_s.sum()))
+    metrics['real_time_factor'] = (float(duration_s / busy_s)
+                                   if n > 1 and busy_s > 0 else None)
     if replay.ground_truth is not None:
         estimate = estimate_for_ground_truth(replay, config)
         try:

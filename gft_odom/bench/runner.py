@@ -122,23 +122,29 @@ def method_config(base: GftOdomConfig, method: str) -> GftOdomConfig:
                               'pipeline.use_spectral_filter': use_filter})
 
 
+def _no_map_update() -> None:
+    """A peer updates its map inside its per-scan call: nothing is left after the pose."""
+    return None
+
+
 def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfig):
-    """A callable scan -> (stamp_ns, T_world_sensor, n_points_in, n_points_kept, status),
-    or None for a scan the pipeline's acceptance rejected (as the node would)."""
+    """(step, update_map): a callable scan -> (stamp_ns, T_world_sensor, n_points_in,
+    n_points_kept, status), or None for a scan the pipeline's acceptance rejected (as the
+    node would); and the callable that does the map work left after the pose."""
     if method in PEER_METHODS:
         peer = EvalioOdometry(PEERS[method][0], lidar=PEER_LIDAR)
 
         def step(scan):
             frame = peer.register_frame(scan)
             return frame.stamp_ns, frame.T_world_sensor, len(scan), frame.n_points_kept, 'ok'
-        return step
+        return step, _no_map_update
     if METHODS[method][1] is None:
         kiss = KissIcpOdometry(kiss_config)
 
         def step(scan):
             frame = kiss.register_frame(scan)
             return frame.stamp_ns, frame.T_world_sensor, len(scan), frame.n_points_kept, 'ok'
-        return step
+        return step, _no_map_update
     pipeline = OdometryPipeline(config, record_trajectory=False)
 
     def step(scan):
@@ -146,18 +152,20 @@ def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfi
         if not r.accepted:
             return None
         return r.stamp_ns, r.T_world_sensor, r.n_points_in, r.n_points_kept, r.status
-    return step
+    return step, pipeline.update_map
 
 
 def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
                kiss_config: KissIcpConfig = KissIcpConfig(), max_scans: int | None = None,
                ground_truth: Trajectory | None = None) -> MethodRun:
-    """Replay `sequence` through `method`, timing read + decode + the per-scan call."""
+    """Replay `sequence` through `method`, timing read + decode + the per-scan call up to
+    the pose, and apart the map work a method leaves after it."""
     config = method_config(base_config, method)
-    step = _make_odometry(method, config, kiss_config)
+    step, update_map = _make_odometry(method, config, kiss_config)
     if ground_truth is None:
         ground_truth = read_ground_truth(sequence.gt_path)
     stamps, poses, latency, points_in, points_kept, statuses = [], [], [], [], [], []
+    map_update = []
     with ScanBagReader([sequence.bag_path]) as reader:
         for scan, t_decode in timed_scans(reader, scan_count(reader, max_scans)):
             t0 = time.perf_counter()
@@ -166,6 +174,9 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
                 continue
             stamp_ns, T_world_sensor, n_in, n_kept, status = out
             latency.append(t_decode + time.perf_counter() - t0)
+            t1 = time.perf_counter()
+            update_map()
+            map_update.append(time.perf_counter() - t1)
             stamps.append(stamp_ns)
             poses.append(T_world_sensor)
             points_in.append(n_in)
@@ -179,7 +190,8 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
         sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
         stage_s={}, points_in=np.asarray(points_in), points_kept=np.asarray(points_kept),
         statuses=statuses, skipped_messages=skipped, ground_truth=ground_truth,
-        ground_truth_is_gps=True)
+        ground_truth_is_gps=True, map_update_s=np.asarray(map_update),
+        scan_stamps_ns=np.array(stamps, dtype=np.int64))
     metrics = summarize(replay, config)
     metrics['method'] = method
     metrics['sequence'] = sequence.name

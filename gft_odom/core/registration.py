@@ -567,13 +567,37 @@ class ScanRegistration:
         self._prev_scan: o3d.geometry.PointCloud | None = None  # paper mode's target
         self.local_map.clear()
         self._map_provisional = False
+        # A keyframe a deferred `register` left for `update_map`: (world points, pose,
+        # smoothness or None).
+        self._pending_keyframe: tuple | None = None
 
     @property
     def has_reference(self) -> bool:
         """A map (default) or a previous scan (paper) to register against."""
         if self.mode == 'paper':
             return self._prev_scan is not None
-        return len(self.local_map) > 0
+        return len(self.local_map) > 0 or self._pending_keyframe is not None
+
+    @property
+    def map_update_pending(self) -> bool:
+        """A deferred `register` left a keyframe for `update_map`."""
+        return self._pending_keyframe is not None
+
+    def update_map(self) -> float:
+        """Add the keyframe the last `register` left pending, and build the solvers' target
+        (its KD-tree) for the next match; the seconds it took (0 when nothing was pending).
+
+        The next `register` does it first when the caller did not, so deferring changes no
+        pose: it only lets a caller publish the pose before the map work (a keyframe's
+        rebuild and normals, most of the p95 latency)."""
+        pending, self._pending_keyframe = self._pending_keyframe, None
+        if pending is None:
+            return 0.0
+        t0 = time.perf_counter()
+        self.local_map.add_keyframe(*pending)
+        if self.icp.solves_on_map_target and len(self.local_map):
+            self.local_map.target()
+        return time.perf_counter() - t0
 
     def advance_with_prediction(self, stamp_ns: int,
                                 status: str = 'fallback_degenerate') -> RegistrationResult:
@@ -583,18 +607,23 @@ class ScanRegistration:
             raise RegistrationError(f'advance_with_prediction needs a fallback status from '
                                     f'{STATUSES}, got {status!r}')
         t_start = time.perf_counter()
+        self.update_map()
         _, T_pred = self.motion.predict(stamp_ns)
         return self._finish(stamp_ns, status, T_pred, t_start, {})
 
     def register(self, points_xyz: np.ndarray, stamp_ns: int,
                  time_offset_s: np.ndarray | None = None,
-                 nu: np.ndarray | None = None) -> RegistrationResult:
+                 nu: np.ndarray | None = None,
+                 defer_map_update: bool = False) -> RegistrationResult:
         """Register one scan (sensor frame, any number of points) and update the state.
 
         `nu` (N,): every point's graph frequency (NaN: none), read by residual_model
-        'frequency'; without it every pair is weighted alike."""
+        'frequency'; without it every pair is weighted alike. `defer_map_update`: a keyframe
+        this scan makes waits for `update_map` (or the next `register`), so the pose is
+        returned before the map's rebuild."""
         sweep = _Sweep(*self._check_input(points_xyz, time_offset_s, nu))
         timings: dict[str, float] = {}
+        self.update_map()  # a keyframe a deferred call left, when its caller did not
         t_start = time.perf_counter()
         # 1. Predict: the velocity over the real stamp difference, capped (a gap drops it).
         sweep.dt_s, T_pred = self.motion.predict(stamp_ns)
@@ -610,6 +639,8 @@ class ScanRegistration:
         self._redeskew(sweep, stamp_ns, status, T_new)
         # 6-8. Trust the pose or count a fallback, update the map, the result.
         result = self._finish(stamp_ns, status, T_new, t_start, timings, sweep, match)
+        if not defer_map_update:
+            timings['map_update'] = self.update_map()
         return self._with_extras(result, sweep, refused)
 
     # ------------------------------------------------------------ the steps
@@ -837,8 +868,8 @@ class ScanRegistration:
             self._map_provisional = False
         if self.local_map.needs_keyframe(T_world_sensor) or len(self.local_map) == 0:
             points, smoothness = self._keyframe_points(sweep)
-            self.local_map.add_keyframe(transform_points(T_world_sensor, points), T_world_sensor,
-                                        smoothness)
+            self._pending_keyframe = (transform_points(T_world_sensor, points),
+                                      T_world_sensor.copy(), smoothness)
 
     def _keyframe_points(self, sweep: _Sweep) -> tuple[np.ndarray, np.ndarray | None]:
         """The points a keyframe adds, and their smoothness when the map keeps it: the

@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Header
 
@@ -40,10 +41,12 @@ class OdometryDiagnostics:
 
     def assess(self, now_s: float, counters, latencies_s, period_s: float,
                weak=None, weak_warn_ratio: float = 0.0,
-               bounds_message: str | None = None) -> Assessment:
-        """OK / WARN / ERROR over the last window from counters and latencies; `weak`: the
-        last match's `WeakDirection` (core.degeneracy), WARN when its ratio is below
-        `weak_warn_ratio`; `bounds_message`: the motion bounds' line (WARN)."""
+               bounds_message: str | None = None, busy_s=None) -> Assessment:
+        """OK / WARN / ERROR over the last window from counters and latencies; `busy_s`:
+        each scan's latency with the map update after it (ERROR when their mean is over the
+        period: the node cannot keep up); `weak`: the last match's `WeakDirection`
+        (core.degeneracy), WARN when its ratio is below `weak_warn_ratio`;
+        `bounds_message`: the motion bounds' line (WARN)."""
         current = dict(counters)
         self._snapshots.append((now_s, current))
         while self._snapshots and now_s - self._snapshots[0][0] > self._window_s:
@@ -72,6 +75,11 @@ class OdometryDiagnostics:
             if lost_share >= LOST_WARN:
                 problems.append((ERROR if lost_share >= LOST_ERROR else WARN,
                                  f'{100 * lost_share:.0f} % of sweeps missed or stale'))
+        busy_mean_s = float(np.mean(busy_s)) if busy_s else None
+        if busy_mean_s is not None and busy_mean_s > period_s:
+            problems.append((ERROR, f'{1e3 * busy_mean_s:.0f} ms of work a scan (with the map '
+                                    f'update) > the sensor period {1e3 * period_s:.0f} ms: '
+                                    'scans queue up'))
         if median_s is not None and median_s > period_s:
             problems.append((ERROR, f'median latency {1e3 * median_s:.0f} ms > the sensor '
                                     f'period {1e3 * period_s:.0f} ms'))
@@ -94,6 +102,7 @@ class OdometryDiagnostics:
             'rejected': str(rejected), 'scan_period_s': f'{period_s:.4f}',
             'latency_median_ms': f'{1e3 * median_s:.1f}' if median_s is not None else 'n/a',
             'latency_p95_ms': f'{1e3 * p95_s:.1f}' if p95_s is not None else 'n/a',
+            'busy_mean_ms': f'{1e3 * busy_mean_s:.1f}' if busy_mean_s is not None else 'n/a',
         }
         if weak is not None:
             values['weakest_direction'] = weak.text

@@ -938,3 +938,29 @@ def test_rough_anchor_view_angle_is_validated():
         RegistrationConfig(map_anchor_rough_view_deg=200.0).validate()
     with pytest.raises(ConfigError, match='map_anchor_rough_view_deg'):
         RegistrationConfig(map_anchor_rough_view_deg=float('nan')).validate()
+
+
+def test_a_deferred_map_update_gives_the_same_poses_and_waits_for_update_map(drive):
+    """The pose comes before the keyframe's map work; the poses do not depend on who does
+    that work (the caller's update_map or the next register) or when."""
+    inline, deferred = registration(), registration()
+    pending_seen = updated_s = 0
+    for scan in drive:
+        a = inline.register(scan['points'], scan['stamp_ns'], scan['time'])
+        assert not inline.map_update_pending
+        n_before = len(deferred.local_map)
+        b = deferred.register(scan['points'], scan['stamp_ns'], scan['time'],
+                              defer_map_update=True)
+        np.testing.assert_allclose(b.T_world_sensor, a.T_world_sensor, atol=1e-12)
+        if deferred.map_update_pending:
+            pending_seen += 1
+            assert deferred.has_reference
+            assert len(deferred.local_map) == n_before  # nothing added yet
+            if pending_seen % 2 == 0:  # every other one is left to the next register
+                seconds = deferred.update_map()
+                assert seconds > 0.0 and not deferred.map_update_pending
+                assert len(deferred.local_map) == len(inline.local_map)
+                updated_s += 1
+    assert pending_seen >= 3 and updated_s >= 1
+    deferred.reset()
+    assert not deferred.map_update_pending and not deferred.has_reference

@@ -77,3 +77,16 @@ def test_the_motion_bounds_message_is_a_warning():
     line = 'motion bounds: ... raise registration.max_speed_mps'
     result = diag.assess(5.0, {'processed': 60}, [0.03], 0.1, bounds_message=line)
     assert result.level == WARN and line in result.message
+
+
+def test_work_beyond_the_period_with_the_map_update_is_an_error():
+    """Odometry out in time but a map update that makes each scan's work overrun the period:
+    the scans queue up, which the latency alone does not show."""
+    from gft_odom.ros.diagnostics import ERROR, OK, OdometryDiagnostics
+    diag = OdometryDiagnostics(window_s=10.0)
+    latencies = [0.04] * 20
+    diag.assess(0.0, {}, latencies, 0.1, busy_s=[0.06] * 20)
+    fine = diag.assess(5.0, {'processed': 50}, latencies, 0.1, busy_s=[0.06] * 20)
+    assert fine.level == OK and fine.values['busy_mean_ms'] == '60.0'
+    over = diag.assess(6.0, {'processed': 60}, latencies, 0.1, busy_s=[0.04, 0.2] * 10)
+    assert over.level == ERROR and 'scans queue up' in over.message

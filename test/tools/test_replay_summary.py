@@ -25,6 +25,10 @@ def test_replay_writes_and_prints_mean_and_end_point_error(tmp_path, capsys):
     # A 1 m drive along a row: a working odometry is centimetres off, never exactly 0.
     assert 0.0 < metrics['ate_mean_m'] <= metrics['ate_rmse_m'] < 0.5
     assert 0.0 < metrics['end_error_m'] <= metrics['ate_max_m'] + 1e-12
+    # The keyframes' map work is timed after the pose: in the busy time, not the latency.
+    assert metrics['map_update_p95_ms'] > 0.0
+    assert metrics['busy_mean_ms'] > 0.0 and metrics['busy_p95_ms'] >= metrics['latency_p95_ms']
+    assert metrics['latency_at_rate_p95_ms'] >= metrics['latency_p95_ms'] - 1e-9
     printed = capsys.readouterr().out
     line = accuracy_line(metrics)
     assert line in printed.splitlines()
