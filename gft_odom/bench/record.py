@@ -219,6 +219,8 @@ def summarize_record(record: RecordRun) -> dict[str, dict]:
             'rpe_10m_pct': _mean(r.get('rpe_10m_pct') for r in rows),
             'latency_median_ms': _mean(r.get('latency_median_ms') for r in rows),
             'latency_p95_ms': _mean(r.get('latency_p95_ms') for r in rows),
+            'busy_mean_ms': _mean(r.get('busy_mean_ms') for r in rows),
+            'latency_at_rate_p95_ms': _mean(r.get('latency_at_rate_p95_ms') for r in rows),
             'real_time_factor': _mean(r.get('real_time_factor') for r in rows),
             'fallbacks': int(sum(r.get('fallbacks') or 0 for r in rows)),
             'distance_m': float(sum(r.get('path_length_m') or 0.0 for r in rows)),
@@ -237,11 +239,13 @@ def summary_markdown(summary: dict[str, dict]) -> str:
     """The summary table: one row per entry."""
     header = ['method', 'drives', 'mean ATE RMSE [m]', 'mean error [m]', 'end-point error [m]',
               'drift 100-800 m [%]', 'RPE 10 m [%]', 'latency median / p95 [ms]',
+              'work a scan, mean [ms]', 'latency p95 at the sensor rate [ms]',
               'real-time factor', 'fallbacks']
     rows = [[label, str(s['drives']), _fmt(s['ate_rmse_m']), _fmt(s.get('ate_mean_m')),
              _fmt(s.get('end_error_m')), _fmt(s['kitti_drift_pct'], 2),
              _fmt(s['rpe_10m_pct'], 2),
              f"{_fmt(s['latency_median_ms'], 1)} / {_fmt(s['latency_p95_ms'], 1)}",
+             _fmt(s.get('busy_mean_ms'), 1), _fmt(s.get('latency_at_rate_p95_ms'), 1),
              _fmt(s['real_time_factor'], 1), str(s['fallbacks'])]
             for label, s in summary.items()]
     return _table(header, rows)

@@ -229,9 +229,10 @@ class RegistrationConfig:
     anderson_memory: int = 0
     # When the map's kNN normals are estimated (solvers 'map_tree' and 'gauss_newton'):
     # 'rebuild' (every map point's, at each keyframe: open3d's estimate_normals, most of a
-    # keyframe scan's time) or 'on_demand' (a point's when a pair first uses it, carried over
-    # a rebuild while its neighbours stay its own: the same normals, so the same trajectory;
-    # the keyframe scans' spike is spread over the scans, docs/registration.md session 12).
+    # keyframe's map update, which runs after the pose) or 'on_demand' (a point's when a
+    # pair first uses it, carried over a rebuild while its neighbours stay its own: the same
+    # normals, so the same trajectory; the work moves into the matches, before the pose,
+    # docs/registration.md sessions 12-13).
     map_normals: str = 'rebuild'
     # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
     # 'frequency' (the scan point's graph frequency decides: smooth -> plane, rough -> the
