@@ -24,6 +24,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from gft_odom.core.anchors import AnchorStore
 from gft_odom.core.gauss_newton import MapTarget
 from gft_odom.core.residuals import smoothness_from_covariances
 
@@ -35,7 +36,12 @@ KEYFRAME_EVICTIONS = ('oldest', 'farthest')
 # replaces a filled voxel).
 # 'nearest': the point measured from the closest sensor position (the sharpest view of a
 # crown or a trunk; docs/registration.md: the map seen only from behind biases along rows).
-VOXEL_KEEPS = ('newest', 'oldest', 'nearest')
+# 'mean': the centroid of every point the window's keyframes (and anchors) put in the voxel,
+# a distribution of all the views instead of one view (the bias study's candidate fix).
+# 'mean_rough': the frequency decides: a voxel whose points are smooth on average (ground,
+# trunks: one surface, the same from any side) keeps its oldest point, a rough one (canopy,
+# whose returns depend on where it was seen from) the mean of its views.
+VOXEL_KEEPS = ('newest', 'oldest', 'nearest', 'mean', 'mean_rough')
 
 
 def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -62,6 +68,32 @@ def voxel_downsample_indices(points_xyz: np.ndarray, voxel_size_m: float,
     sorted_keys = keys[order]
     head = np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]
     return np.sort(order[head])
+
+
+def voxel_means(points_xyz: np.ndarray, voxel_size_m: float, *values: np.ndarray
+                ) -> tuple[np.ndarray, ...]:
+    """The centroid of each occupied voxel, in voxel-key order, the mean of each of
+    `values` (N,) or (N, k) over the voxel's points (NaN entries left out; NaN where all are),
+    and the index of each voxel's first point."""
+    keys = voxel_keys(points_xyz, voxel_size_m)
+    _, first, group, count = np.unique(keys, return_index=True, return_inverse=True,
+                                       return_counts=True)
+    group = group.ravel()
+
+    def mean(v: np.ndarray) -> np.ndarray:
+        v = np.asarray(v, dtype=np.float64)
+        flat = v.reshape(v.shape[0], -1)
+        known = np.isfinite(flat)
+        out = np.empty((count.shape[0], flat.shape[1]))
+        for j in range(flat.shape[1]):  # a column at a time (3 at most)
+            n = np.bincount(group, known[:, j], minlength=count.shape[0])
+            total = np.bincount(group, np.where(known[:, j], flat[:, j], 0.0),
+                                minlength=count.shape[0])
+            with np.errstate(invalid='ignore', divide='ignore'):
+                out[:, j] = total / n
+        return out.reshape((count.shape[0],) + v.shape[1:])
+
+    return (mean(points_xyz),) + tuple(mean(v) for v in values) + (first,)
 
 
 def to_cloud(points_xyz: np.ndarray) -> o3d.geometry.PointCloud:
@@ -101,7 +133,7 @@ class LocalMap:
         # Rough points stay too, served only when seen from within this angle of where they
         # were measured from; None: rough points leave with their keyframe.
         self.rough_anchor_view_rad = rough_anchor_view_rad
-        self._clear_anchors()
+        self._anchors = AnchorStore()
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
         self.smoothness_variation: float | None = None
@@ -121,7 +153,7 @@ class LocalMap:
     def clear(self) -> None:
         """Drop every keyframe."""
         self._keyframes.clear()
-        self._clear_anchors()
+        self._anchors.clear()
         self.cloud = o3d.geometry.PointCloud()
         self.smoothness = None
         self.viewpoints = np.zeros((0, 3))
@@ -196,13 +228,12 @@ class LocalMap:
     @property
     def n_anchors(self) -> int:
         """Points kept after their keyframe left the window (all of them, in range or not)."""
-        return self._anchor_points.shape[0]
+        return len(self._anchors)
 
     def _anchor(self, keyframe, centre_xyz: np.ndarray) -> None:
         """Keep the smooth points of a keyframe leaving the window, and with rough anchors
         the rest too. A filled voxel keeps its older anchor, unless that one is rough and
-        the new one smooth (a trunk first seen far off, as rough, is later seen near). The
-        anchors are kept sorted by voxel key (membership by binary search); over
+        the new one smooth (a trunk first seen far off, as rough, is later seen near). Over
         `anchor_max_points` the farthest from `centre_xyz` are dropped."""
         T, points, smoothness = keyframe
         if self.anchor_smoothness is None:
@@ -220,63 +251,41 @@ class LocalMap:
                  if self.rough_anchor_view_rad is not None else slice(None))
         keys, first = np.unique(keys[order], return_index=True)
         chosen = chosen[order][first]
-        at = np.searchsorted(self._anchor_keys, keys)
-        known = at < self._anchor_keys.shape[0]
-        known[known] = self._anchor_keys[at[known]] == keys[known]
+        known, anchored_smoothness = self._anchors.find(keys)
+        viewpoints = np.broadcast_to(T[:3, 3], (chosen.shape[0], 3))
         if self.rough_anchor_view_rad is not None and known.any():
             # A smooth point takes over a rough anchor's voxel.
-            upgrade = np.flatnonzero(known)
-            upgrade = upgrade[self._is_smooth(smoothness[chosen[upgrade]])
-                              & ~self._is_smooth(self._anchor_smoothness_values[at[upgrade]])]
-            where = at[upgrade]
-            self._anchor_points[where] = points[chosen[upgrade]]
-            self._anchor_smoothness_values[where] = smoothness[chosen[upgrade]]
-            self._anchor_viewpoints[where] = T[:3, 3]
-        new = chosen[~known]
-        keys = np.concatenate([self._anchor_keys, keys[~known]])
-        order = np.argsort(keys, kind='stable')  # two sorted runs: a merge
-        self._set_anchors(
-            keys[order], np.concatenate([self._anchor_points, points[new]])[order],
-            np.concatenate([self._anchor_smoothness_values, smoothness[new]])[order],
-            np.concatenate([self._anchor_viewpoints,
-                            np.broadcast_to(T[:3, 3], (new.shape[0], 3))])[order])
-        if self.n_anchors > self.anchor_max_points:
-            offset = self._anchor_points - centre_xyz
-            keep = np.sort(np.argpartition(np.einsum('ij,ij->i', offset, offset),
-                                           self.anchor_max_points - 1)
-                           [:self.anchor_max_points])
-            self._set_anchors(self._anchor_keys[keep], self._anchor_points[keep],
-                              self._anchor_smoothness_values[keep],
-                              self._anchor_viewpoints[keep])
+            upgrade = (known & self._is_smooth(smoothness[chosen])
+                       & ~self._is_smooth(anchored_smoothness))
+            self._anchors.replace(keys[upgrade], points[chosen[upgrade]],
+                                  smoothness[chosen[upgrade]], viewpoints[upgrade])
+        new = ~known
+        self._anchors.add(keys[new], points[chosen[new]], smoothness[chosen[new]],
+                          viewpoints[new])
+        self._anchors.keep_nearest(centre_xyz, self.anchor_max_points)
 
     def _is_smooth(self, smoothness: np.ndarray) -> np.ndarray:
         """Served from any side: smoothness at or above the anchor threshold (NaN: never)."""
         return np.asarray(smoothness) >= self.anchor_smoothness
 
-    def _served_anchors(self, centre_xyz: np.ndarray) -> np.ndarray | slice:
-        """Which anchors are served to a keyframe at `centre_xyz`: every smooth one, and a
-        rough one only when seen from within `rough_anchor_view_rad` of the direction it was
-        measured from. Ungated, every anchor (a slice: the arrays are not copied)."""
+    def _served_anchors(self, centre_xyz: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points, smoothness, viewpoints) of the anchors that may be served to a keyframe
+        at `centre_xyz`, sorted by voxel key: those near it (the radius crop follows), of them
+        every smooth one, and a rough one only when seen from within `rough_anchor_view_rad`
+        of the direction it was measured from."""
+        points, smoothness, viewpoints = self._anchors.near(centre_xyz[0], self.max_range_m,
+                                                            self.voxel_size_m)
         if self.rough_anchor_view_rad is None or self.anchor_smoothness <= 0.0:
-            return slice(None)
-        to_view = self._anchor_viewpoints - self._anchor_points
-        to_centre = centre_xyz - self._anchor_points
+            return points, smoothness, viewpoints
+        to_view = viewpoints - points
+        to_centre = centre_xyz - points
         dot = np.einsum('ij,ij->i', to_view, to_centre)
         norms = np.sqrt(np.einsum('ij,ij->i', to_view, to_view)
                         * np.einsum('ij,ij->i', to_centre, to_centre))
         seen_alike = dot >= np.cos(self.rough_anchor_view_rad) * norms
-        return np.flatnonzero(self._is_smooth(self._anchor_smoothness_values) | seen_alike)
-
-    def _set_anchors(self, keys, points, smoothness, viewpoints) -> None:
-        """The anchors, as four aligned arrays sorted by voxel key."""
-        self._anchor_keys = keys
-        self._anchor_points = points
-        self._anchor_smoothness_values = smoothness
-        self._anchor_viewpoints = viewpoints
-
-    def _clear_anchors(self) -> None:
-        self._set_anchors(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0),
-                          np.zeros((0, 3)))
+        served = self._is_smooth(smoothness) | seen_alike
+        return points[served], smoothness[served], viewpoints[served]
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
@@ -284,6 +293,20 @@ class LocalMap:
             return None
         offset = points_world - T_world_sensor[:3, 3]
         return -np.einsum('ij,ij->i', offset, offset)
+
+    def _voxel_means(self, points, viewpoints, smoothness):
+        """(centroids, mean viewpoints, mean smoothness or None) of the voxels; with
+        'mean_rough' a voxel smooth on average keeps its first (oldest) point and view."""
+        if smoothness is None:
+            centroids, views, _ = voxel_means(points, self.voxel_size_m, viewpoints)
+            return centroids, views, None
+        centroids, views, smooth, first = voxel_means(points, self.voxel_size_m, viewpoints,
+                                                      smoothness)
+        if self.voxel_keeps == 'mean_rough':
+            threshold = 0.75 if self.anchor_smoothness is None else self.anchor_smoothness
+            one = smooth >= threshold  # NaN: rough
+            centroids[one], views[one] = points[first[one]], viewpoints[first[one]]
+        return centroids, views, smooth
 
     def _rebuild(self, centre_xyz: np.ndarray) -> None:
         # The first point of a voxel wins: newest keyframe first keeps the freshest point,
@@ -293,12 +316,11 @@ class LocalMap:
         parts = [(pts, s, np.broadcast_to(T[:3, 3], pts.shape), self._view_priority(pts, T))
                  for T, pts, s in keyframes]
         if self.n_anchors:
-            served = self._served_anchors(centre_xyz)
             # Anchors first: they are the oldest content, and a voxel they fill keeps them
             # (with 'nearest' they compete by their range from where they were seen).
-            points, viewpoints = self._anchor_points[served], self._anchor_viewpoints[served]
+            points, anchor_smoothness, viewpoints = self._served_anchors(centre_xyz)
             offset = points - viewpoints
-            anchors = (points, self._anchor_smoothness_values[served], viewpoints,
+            anchors = (points, anchor_smoothness, viewpoints,
                        -np.einsum('ij,ij->i', offset, offset)
                        if self.voxel_keeps == 'nearest' else None)
             parts = [anchors] + parts
@@ -313,8 +335,15 @@ class LocalMap:
                     else None)
         d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
         index = np.flatnonzero(d2 <= self.max_range_m ** 2)
-        index = index[voxel_downsample_indices(
-            merged[index], self.voxel_size_m, None if priority is None else priority[index])]
+        if self.voxel_keeps in ('mean', 'mean_rough'):
+            merged, viewpoints, smooth = self._voxel_means(
+                merged[index], viewpoints[index], None if smooth is None else smooth[index])
+            d2 = np.einsum('ij,ij->i', merged - centre_xyz, merged - centre_xyz)
+            index = np.arange(merged.shape[0])
+        else:
+            index = index[voxel_downsample_indices(
+                merged[index], self.voxel_size_m,
+                None if priority is None else priority[index])]
         if index.shape[0] > self.max_points:
             # Keep the nearest points: registration is best conditioned close to the sensor.
             index = index[np.argpartition(d2[index], self.max_points - 1)[:self.max_points]]
