@@ -100,6 +100,16 @@ ABLATION_ENTRIES += (
               ('registration.residual_model', 'planarity'),
               ('registration.rough_residual', 'point'))),
 )
+# Session 14: rough anchors served only from the side they were seen from (session 9's
+# map_anchor_rough_view_deg, 3-4 % better than the default on the training drives), with the
+# frequency, shuffled, and without it (every anchor rough, so every one view-gated).
+_VIEW = (('registration.map_anchor_rough_view_deg', 60.0),)
+ABLATION_ENTRIES += (
+    Entry('view-gated rough anchors (frequency)', 'default+gft', _VIEW),
+    Entry('view-gated rough anchors, shuffled frequency', 'default+gft',
+          _VIEW + (('pipeline.shuffle_frequencies', True),)),
+    Entry('view-gated rough anchors, no frequency (--no-filter)', 'default', _VIEW),
+)
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
 # drives only; the held-out record then reports the one chosen against the old default.
@@ -136,6 +146,16 @@ STUDY_ENTRIES = (
     Entry('voxels keep oldest + retry (new default)', 'default+gft'),
     Entry('new default + map points from the scan', 'default+gft',
           (('registration.map_points_from', 'scan'),)),
+    # Session 14: a map voxel keeps the mean of every view in the window, not the first view
+    # (the bias study: the map is always seen from behind).
+    Entry('default (session 13)', 'default+gft'),
+    Entry('map voxels keep the mean of all views', 'default+gft',
+          (('registration.map_voxel_keeps', 'mean'),)),
+    Entry('rough map voxels keep the mean of all views', 'default+gft',
+          (('registration.map_voxel_keeps', 'mean_rough'),)),
+    Entry('rough map voxels keep the mean, shuffled frequency', 'default+gft',
+          (('registration.map_voxel_keeps', 'mean_rough'),
+           ('pipeline.shuffle_frequencies', True))),
 )
 
 
@@ -155,9 +175,13 @@ def main(argv=None) -> int:
                    help='the drift-study candidates instead of the record entries')
     p.add_argument('--ablation', action='store_true',
                    help="issue 20's frequency ablation instead of the record entries")
+    p.add_argument('--names', nargs='*', default=None,
+                   help='only these drives of the set (e.g. lawnmower-111 spiral-112)')
     p.add_argument('--out', type=Path, default=RESULTS)
     args = p.parse_args(argv)
-    drives = DRIVE_SETS[args.drives]
+    drives = [d for d in DRIVE_SETS[args.drives] if args.names is None or d.name in args.names]
+    if not drives:
+        p.error(f'no drive of {args.drives} matches --names {args.names}')
     pool = STUDY_ENTRIES if args.study else ABLATION_ENTRIES if args.ablation else ENTRIES
     entries = [e for e in pool if args.only is None or e.label in args.only]
     if not entries:
@@ -174,7 +198,7 @@ def main(argv=None) -> int:
     settings = {'drives': args.drives, 'jobs': args.jobs, 'simulate_s': t_sim,
                 'methods_s': time.perf_counter() - t0 - t_sim, 'machine': machine_info()}
     kind = 'study' if args.study else 'ablation' if args.ablation else 'record'
-    stem = f'{kind}_{args.drives}'
+    stem = f'{kind}_{args.drives}' + ('_' + '_'.join(args.names) if args.names else '')
     paths = write_record(record, args.out, settings, stem=stem)
     print(paths['markdown'].read_text())
     return 0

@@ -63,7 +63,9 @@ RESULTS = ROOT / 'benchmarks' / 'results' / 'bias_study.json'
 FIGURE = ROOT / 'docs' / 'bias_study.png'
 DRIVES = (('lawnmower', 111), ('every_other_row', 113), ('spiral', 112), ('out_and_back', 114))
 CLASSES = ('ground', 'trunk', 'canopy', 'noncanopy')
-MAPS = ('distorted', 'deskewed', 'newest')  # which scans and which voxel keeping
+# Which scans and which voxel keeping: the oldest point (the pipeline's), the newest, or the
+# mean of every keyframe's point in the voxel (session 14: all the views, not the first).
+MAPS = ('distorted', 'deskewed', 'newest', 'mean', 'deskewed_mean')
 OFFSETS_M = (-0.2, -0.1, 0.1, 0.2)
 # A scan is on a straight segment when the path heading turns less than this within +-1.5 s.
 STRAIGHT_RAD = 0.02
@@ -87,7 +89,9 @@ def default_variants() -> list[Variant]:
     """The study's registrations (~15 per test scan)."""
     out = [Variant('o3d'), Variant('o3d_tight', 'o3d_tight'), Variant('gn_plane', 'gn_plane'),
            Variant('gn_plane_tight', 'gn_plane_tight'), Variant('gn_freq', 'gn_freq'),
-           Variant('deskewed', map_kind='deskewed'), Variant('newest', map_kind='newest')]
+           Variant('deskewed', map_kind='deskewed'), Variant('newest', map_kind='newest'),
+           Variant('mean', map_kind='mean'), Variant('deskewed_mean', map_kind='deskewed_mean'),
+           Variant('deskewed_mean_canopy', map_kind='deskewed_mean', points='canopy')]
     out += [Variant(f'o3d_{c}', points=c) for c in CLASSES]
     out += [Variant(f'deskewed_{c}', map_kind='deskewed', points=c)
             for c in ('canopy', 'noncanopy')]
@@ -103,7 +107,9 @@ def reversal_variants() -> list[Variant]:
             Variant('o3d_canopy', points='canopy'),
             Variant('deskewed_canopy', map_kind='deskewed', points='canopy'),
             Variant('deskewed_noncanopy', map_kind='deskewed', points='noncanopy'),
-            Variant('gn_freq', 'gn_freq')]
+            Variant('gn_freq', 'gn_freq'), Variant('mean', map_kind='mean'),
+            Variant('deskewed_mean', map_kind='deskewed_mean'),
+            Variant('deskewed_mean_canopy', map_kind='deskewed_mean', points='canopy')]
 
 
 def row_axes(sim: ScanSimulator, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -172,7 +178,8 @@ def prepare_scan(sim: ScanSimulator, index: int, reg: RegistrationConfig,
         nu = spectral.scan_frequencies(cropped).nu
         smooth = smoothness_from_nu(nu[keep], reg.smooth_nu)
     return TestScan(index, s.T_world_sensor,
-                    {'distorted': distorted, 'deskewed': deskewed, 'newest': distorted},
+                    {'distorted': distorted, 'deskewed': deskewed, 'newest': distorted,
+                     'mean': distorted, 'deskewed_mean': deskewed},
                     s.surface[crop][keep], smooth)
 
 
@@ -282,7 +289,8 @@ def oracle_run(sim: ScanSimulator, first: int, last: int, test_every: int,
     maps = {}
     for kind in MAPS:
         maps[kind] = local_map_from_config(reg)
-        maps[kind].voxel_keeps = 'newest' if kind == 'newest' else 'oldest'
+        maps[kind].voxel_keeps = kind if kind in ('newest', 'mean') else (
+            'mean' if kind == 'deskewed_mean' else 'oldest')
     solvers = Solvers(reg)
     spectral = SpectralFilter() if any(v.solver == 'gn_freq' for v in variants) else None
     rows: dict = {'index': [], 'straight': [], 'since_keyframe_m': [], 'speed_mps': []}
@@ -319,7 +327,7 @@ def oracle_run(sim: ScanSimulator, first: int, last: int, test_every: int,
         if k in keys:
             # After its own registration, as in the pipeline: a scan meets an older map.
             for kind, local_map in maps.items():
-                pts = ts.points['deskewed' if kind == 'deskewed' else 'distorted']
+                pts = ts.points['deskewed' if kind.startswith('deskewed') else 'distorted']
                 local_map.add_keyframe(transform_points(ts.T_true, pts), ts.T_true)
             last_key_T = ts.T_true
     out = {key: np.asarray(value) for key, value in rows.items()}
@@ -514,9 +522,10 @@ def plot(summary: dict, path: Path) -> None:
 
 GROUPS = (('solvers (distorted scans and map, as the pipeline)',
            ('o3d', 'o3d_tight', 'gn_plane', 'gn_plane_tight', 'gn_freq')),
-          ('scans and map', ('o3d', 'deskewed', 'newest')),
+          ('scans and map', ('o3d', 'deskewed', 'newest', 'mean', 'deskewed_mean')),
           ('surface classes', ('o3d', 'o3d_ground', 'o3d_trunk', 'o3d_canopy', 'o3d_noncanopy',
-                               'deskewed', 'deskewed_canopy', 'deskewed_noncanopy')))
+                               'deskewed', 'deskewed_canopy', 'deskewed_noncanopy',
+                               'deskewed_mean_canopy')))
 
 
 def summarise_runs(runs: list[dict], variants: list[Variant]) -> dict:
@@ -554,8 +563,11 @@ def print_tables(summary: dict, variants: list[Variant]) -> None:
     """The study's tables on stdout (markdown)."""
     st = summary['straight']
     for title, names in GROUPS:
+        if not any(n in st for n in names):
+            continue
         print()
-        print(table(f'{title}: straight segments, pooled', [(n, st[n]) for n in names]))
+        print(table(f'{title}: straight segments, pooled', [(n, st[n]) for n in names
+                                                             if n in st]))
     print()
     print(table('initial guess offset: straight segments, pooled',
                 [(v.name, st[v.name]) for v in variants if '_from_' in v.name]))
@@ -565,6 +577,8 @@ def print_tables(summary: dict, variants: list[Variant]) -> None:
                     list(summary['reversed_straight'].items())))
         print()
         print(table('the same drives forward', list(summary['same_drives_straight'].items())))
+    if not summary['pulls']:
+        return
     print('\n### along-track pull at the truth [mm] and share of the along-track information'
           ' (straight, pooled)\n')
     print('| points | pull distorted | pull deskewed | info share |\n|---|---|---|---|')
@@ -604,10 +618,16 @@ def main() -> None:
                         help='drives also walked backwards in time (map seen from ahead)')
     parser.add_argument('--quick', action='store_true', help='one drive, 300 scans')
     parser.add_argument('--no-figure', action='store_true')
+    parser.add_argument('--only', nargs='*', default=None,
+                        help='only these variants (e.g. deskewed deskewed_mean), no pulls')
+    parser.add_argument('--out', type=Path, default=RESULTS, help='results JSON')
     args = parser.parse_args()
     drives = DRIVES[:1] if args.quick else DRIVES
     n_scans = 300 if args.quick else args.scans
     variants, rev_variants = default_variants(), reversal_variants()
+    if args.only is not None:
+        variants = [v for v in variants if v.name in args.only]
+        rev_variants = [v for v in rev_variants if v.name in args.only]
     runs, reversed_runs, timing = [], [], {}
     t_start = time.process_time()
     for i, (scenario, seed) in enumerate(drives):
@@ -620,7 +640,7 @@ def main() -> None:
                   f'{" (reversed)" if reverse else ""}', flush=True)
             run = oracle_run(sim, 0, last, args.test_every,
                              rev_variants if reverse else variants, reverse=reverse,
-                             log=print)
+                             with_pulls=args.only is None, log=print)
             run['drive'] = f'{scenario}-{seed}'
             (reversed_runs if reverse else runs).append(run)
             print(f"  {run['index'].size} test scans ({int(run['straight'].sum())} straight),"
@@ -638,9 +658,9 @@ def main() -> None:
                    scans_per_drive=n_scans, test_every=args.test_every)
     print_tables(summary, variants)
     print(f"\nCPU {summary['cpu_s']:.0f} s")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(summary, indent=1) + '\n')
-    if not args.no_figure:
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(summary, indent=1) + '\n')
+    if not args.no_figure and args.only is None:
         plot(summary, FIGURE)
         print(f'wrote {RESULTS.relative_to(ROOT)} and {FIGURE.relative_to(ROOT)}')
 

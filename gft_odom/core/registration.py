@@ -140,6 +140,10 @@ class RegistrationConfig:
     # to what was seen first instead of following each new keyframe's small error (GenZ-ICP
     # and kiss-icp never replace a filled voxel either). With retry_failed_match: mean ATE
     # 0.097 -> 0.070 m on the seven training drives (docs/benchmarks.md, round 3).
+    # 'mean' keeps the centroid of every keyframe's point in the voxel (all the views);
+    # 'mean_rough' lets the frequency choose: the oldest point where the voxel is smooth on
+    # average (ground, trunks), the mean where it is rough (canopy, whose returns depend on
+    # the viewpoint). 'nearest': the point seen from closest. Session 14, docs/registration.md.
     map_voxel_keeps: str = 'oldest'
     # Anchors: when a keyframe leaves the window its points of smoothness >= this (graph
     # frequency nu / smooth_nu: ground, trunks, posts) stay in the map (served while within

@@ -665,6 +665,47 @@ def test_a_voxel_keeps_the_newest_or_the_oldest_keyframes_point():
         RegistrationConfig(map_voxel_keeps='random').validate()
 
 
+def test_a_voxel_keeps_the_mean_of_its_views_when_asked():
+    """'mean': the centroid of every keyframe's point in the voxel; 'mean_rough': the
+    oldest point where the voxel is smooth on average (ground, trunks), the mean elsewhere."""
+    from gft_odom.core.local_map import LocalMap
+    maps = {k: LocalMap(1.0, 100.0, 10_000, 5, 0.1, 0.2, 5, with_normals=False, voxel_keeps=k,
+                        anchor_smoothness=0.75) for k in ('mean', 'mean_rough')}
+    # Two voxels seen by two keyframes: a smooth one (0.9, 1.0) and a rough one (0.1, 0.3).
+    for x, smooth in ((0.3, (0.9, 0.1)), (0.5, (1.0, 0.3))):
+        T = np.eye(4)
+        T[0, 3] = x
+        for local_map in maps.values():
+            local_map.add_keyframe(np.array([[x, 0.5, 0.5], [x, 5.5, 0.5]]), T,
+                                   np.array(smooth))
+    for kind, local_map in maps.items():
+        at = np.argsort(local_map.points_xyz[:, 1])
+        smooth_x, rough_x = local_map.points_xyz[at, 0]
+        assert rough_x == pytest.approx(0.4)
+        assert smooth_x == pytest.approx(0.4 if kind == 'mean' else 0.3)
+        assert local_map.smoothness[at] == pytest.approx([0.95, 0.2])
+        assert local_map.viewpoints[at][:, 0] == pytest.approx(
+            [0.4 if kind == 'mean' else 0.3, 0.4])
+    # Without frequencies every voxel is the mean of its views.
+    plain = LocalMap(1.0, 100.0, 10_000, 5, 0.1, 0.2, 5, with_normals=False,
+                     voxel_keeps='mean_rough', anchor_smoothness=0.75)
+    for x in (0.3, 0.5):
+        T = np.eye(4)
+        T[0, 3] = x
+        plain.add_keyframe(np.array([[x, 0.5, 0.5]]), T)
+    assert plain.points_xyz[:, 0] == pytest.approx([0.4])
+    assert plain.smoothness is None
+
+
+def test_voxel_means_leave_unknown_values_out():
+    from gft_odom.core.local_map import voxel_means
+    points = np.array([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [2.5, 0.0, 0.0]])
+    centroids, values, first = voxel_means(points, 1.0, np.array([np.nan, 2.0, np.nan]))
+    assert centroids == pytest.approx(np.array([[0.2, 0.1, 0.1], [2.5, 0.0, 0.0]]))
+    assert values[0] == 2.0 and np.isnan(values[1])
+    assert first.tolist() == [0, 2]
+
+
 def test_map_points_from_the_scan_are_denser_than_the_registrations(static_pair):
     a, _, _ = static_pair
     sizes = {}
