@@ -42,6 +42,9 @@ DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
 NO_ANCHORS = (('registration.map_anchors', False),)
 # Session 7 added turned guesses to re-acquisition (the last resort); the rows before had none.
 NO_TURN_GUESSES = (('registration.recovery_yaw_guesses', 0),)
+# Session 14 made rough anchors served from their own side the default; the rows before had
+# smooth anchors only.
+NO_VIEW_GATE = (('registration.map_anchor_rough_view_deg', 0.0),)
 PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_points', 80000),
                      ('registration.map_keyframe_eviction', 'oldest'),
                      ('registration.keyframe_rotation_rad', 0.2),
@@ -57,7 +60,9 @@ ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
     Entry('gft_odom + deskew', 'default+gft', (('registration.deskew', True),)),
-    Entry('gft_odom without turned guesses (session 6 default)', 'default+gft', NO_TURN_GUESSES),
+    Entry('gft_odom with smooth anchors only (session 13 default)', 'default+gft', NO_VIEW_GATE),
+    Entry('gft_odom without turned guesses (session 6 default)', 'default+gft',
+          NO_TURN_GUESSES + NO_VIEW_GATE),
     Entry('gft_odom without anchors (session 5 default)', 'default+gft',
           NO_ANCHORS + NO_TURN_GUESSES),
     Entry('kiss-icp', 'kiss-icp'),
@@ -74,13 +79,15 @@ ENTRIES = (
 # same registration without frequencies (--no-filter: nothing is anchored, the map is the
 # keyframe window alone) and with each scan's frequencies shuffled among its points (random
 # points anchored: the memory without the frequency's choice).
-_ANCHORS = (('registration.map_anchors', True), ('registration.map_anchor_smoothness', 0.75))
+_ANCHORS = (('registration.map_anchors', True), ('registration.map_anchor_smoothness', 0.75)
+            ) + NO_VIEW_GATE
 ABLATION_ENTRIES = (
     Entry('anchors (frequency; the default)', 'default+gft', _ANCHORS),
     Entry('no frequency (--no-filter)', 'default', _ANCHORS),
     Entry('anchors, shuffled frequency', 'default+gft',
           _ANCHORS + (('pipeline.shuffle_frequencies', True),)),
-    Entry('anchors, every point', 'default+gft', (('registration.map_anchor_smoothness', 0.0),)),
+    Entry('anchors, every point', 'default+gft',
+          (('registration.map_anchor_smoothness', 0.0),) + NO_VIEW_GATE),
 )
 # Session 5: the Gauss-Newton solver with per-pair residuals: the frequency as a per-pair
 # weight (rough_weight 0: canopy pairs down-weighted, the best of the 'frequency' variants on
@@ -148,14 +155,14 @@ STUDY_ENTRIES = (
           (('registration.map_points_from', 'scan'),)),
     # Session 14: a map voxel keeps the mean of every view in the window, not the first view
     # (the bias study: the map is always seen from behind).
-    Entry('default (session 13)', 'default+gft'),
+    Entry('default (session 13)', 'default+gft', NO_VIEW_GATE),
     Entry('map voxels keep the mean of all views', 'default+gft',
-          (('registration.map_voxel_keeps', 'mean'),)),
+          (('registration.map_voxel_keeps', 'mean'),) + NO_VIEW_GATE),
     Entry('rough map voxels keep the mean of all views', 'default+gft',
-          (('registration.map_voxel_keeps', 'mean_rough'),)),
+          (('registration.map_voxel_keeps', 'mean_rough'),) + NO_VIEW_GATE),
     Entry('rough map voxels keep the mean, shuffled frequency', 'default+gft',
           (('registration.map_voxel_keeps', 'mean_rough'),
-           ('pipeline.shuffle_frequencies', True))),
+           ('pipeline.shuffle_frequencies', True)) + NO_VIEW_GATE),
 )
 
 
