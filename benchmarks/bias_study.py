@@ -63,9 +63,12 @@ RESULTS = ROOT / 'benchmarks' / 'results' / 'bias_study.json'
 FIGURE = ROOT / 'docs' / 'bias_study.png'
 DRIVES = (('lawnmower', 111), ('every_other_row', 113), ('spiral', 112), ('out_and_back', 114))
 CLASSES = ('ground', 'trunk', 'canopy', 'noncanopy')
-# Which scans and which voxel keeping: the oldest point (the pipeline's), the newest, or the
-# mean of every keyframe's point in the voxel (session 14: all the views, not the first).
-MAPS = ('distorted', 'deskewed', 'newest', 'mean', 'deskewed_mean')
+# Map kind -> (which scans build it, which point a voxel keeps): the oldest point (the
+# pipeline's), the newest, or the mean of every keyframe's point in the voxel (session 14:
+# all the views, not the first).
+MAPS = {'distorted': ('distorted', 'oldest'), 'deskewed': ('deskewed', 'oldest'),
+        'newest': ('distorted', 'newest'), 'mean': ('distorted', 'mean'),
+        'deskewed_mean': ('deskewed', 'mean')}
 OFFSETS_M = (-0.2, -0.1, 0.1, 0.2)
 # A scan is on a straight segment when the path heading turns less than this within +-1.5 s.
 STRAIGHT_RAD = 0.02
@@ -157,7 +160,7 @@ class TestScan:
 
     index: int
     T_true: np.ndarray
-    points: dict  # map kind -> (n, 3) sensor frame, the registration's 0.4 m points
+    points: dict  # 'distorted' / 'deskewed' -> (n, 3) sensor frame, the 0.4 m points
     surface: np.ndarray  # (n,) surface codes of those points
     smoothness: np.ndarray | None  # (n,) from nu
 
@@ -178,8 +181,7 @@ def prepare_scan(sim: ScanSimulator, index: int, reg: RegistrationConfig,
         nu = spectral.scan_frequencies(cropped).nu
         smooth = smoothness_from_nu(nu[keep], reg.smooth_nu)
     return TestScan(index, s.T_world_sensor,
-                    {'distorted': distorted, 'deskewed': deskewed, 'newest': distorted,
-                     'mean': distorted, 'deskewed_mean': deskewed},
+                    {'distorted': distorted, 'deskewed': deskewed},
                     s.surface[crop][keep], smooth)
 
 
@@ -289,8 +291,7 @@ def oracle_run(sim: ScanSimulator, first: int, last: int, test_every: int,
     maps = {}
     for kind in MAPS:
         maps[kind] = local_map_from_config(reg)
-        maps[kind].voxel_keeps = kind if kind in ('newest', 'mean') else (
-            'mean' if kind == 'deskewed_mean' else 'oldest')
+        maps[kind].voxel_keeps = MAPS[kind][1]
     solvers = Solvers(reg)
     spectral = SpectralFilter() if any(v.solver == 'gn_freq' for v in variants) else None
     rows: dict = {'index': [], 'straight': [], 'since_keyframe_m': [], 'speed_mps': []}
@@ -327,7 +328,7 @@ def oracle_run(sim: ScanSimulator, first: int, last: int, test_every: int,
         if k in keys:
             # After its own registration, as in the pipeline: a scan meets an older map.
             for kind, local_map in maps.items():
-                pts = ts.points['deskewed' if kind.startswith('deskewed') else 'distorted']
+                pts = ts.points[MAPS[kind][0]]
                 local_map.add_keyframe(transform_points(ts.T_true, pts), ts.T_true)
             last_key_T = ts.T_true
     out = {key: np.asarray(value) for key, value in rows.items()}
@@ -347,7 +348,7 @@ def register_variant(v: Variant, ts: TestScan, maps: dict, solvers: Solvers,
     if n_test % v.every:
         return skipped
     mask = class_mask(ts.surface, v.points)
-    source = ts.points[v.map_kind][mask]
+    source = ts.points[MAPS[v.map_kind][0]][mask]
     if source.shape[0] < 10:
         return skipped
     init = ts.T_true.copy()
@@ -662,7 +663,7 @@ def main() -> None:
     args.out.write_text(json.dumps(summary, indent=1) + '\n')
     if not args.no_figure and args.only is None:
         plot(summary, FIGURE)
-        print(f'wrote {RESULTS.relative_to(ROOT)} and {FIGURE.relative_to(ROOT)}')
+        print(f'wrote {args.out} and {FIGURE.relative_to(ROOT)}')
 
 
 if __name__ == '__main__':

@@ -5,8 +5,9 @@ default), and the map rebuild at every keyframe must neither sort them again nor
 far away. They are kept sorted by voxel key, whose major axis is x, in two runs: a large one
 and a small recent one that new anchors join (merged into the large one when it grows past
 `RECENT_ROWS`). Serving the anchors near a keyframe is two binary searches for the slab of
-voxels within the map radius along x, and a merge of the two slabs by key: the same anchors,
-in the same order, as one sorted array would give, at a cost that does not grow with the run.
+voxels within the map radius along x (`local_map.voxel_x_slab`), and a merge of the two slabs
+by key: the same anchors, in the same order, as one sorted array would give, at a cost that
+does not grow with the run.
 
 Measured (benchmarks/bench_anchors.py): with 1M anchors a keyframe's map update took 0.36 s
 of rebuild and 0.20 s of anchoring when every rebuild scanned and every anchoring re-sorted
@@ -19,9 +20,6 @@ import numpy as np
 
 # New anchors wait in the recent run until it holds this many, then join the large run.
 RECENT_ROWS = 65536
-# voxel_keys: the x index sits above bit 42, offset by 2^20 (local_map.voxel_keys).
-_X_SHIFT = 42
-_OFFSET = 1 << 20
 
 
 def _rows(a: np.ndarray) -> np.ndarray:
@@ -116,6 +114,8 @@ class AnchorStore:
 
     def add(self, keys, points, smoothness, viewpoints) -> None:
         """Anchor new voxels (unique keys, none anchored yet; any order)."""
+        if keys.shape[0] == 0:
+            return
         order = np.argsort(keys)
         self._recent.insert(keys[order], points[order], smoothness[order],
                             viewpoints[order])
@@ -137,15 +137,11 @@ class AnchorStore:
                                        max_points - 1)[:max_points])
         self._main.take(keep)
 
-    def near(self, x_m: float, radius_m: float, voxel_size_m: float
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(points, smoothness, viewpoints) of the anchors in the voxels within `radius_m` of
-        `x_m` along x (a superset of those within the radius), sorted by voxel key."""
-        lo, hi = (np.floor((x_m + np.array([-1.0, 1.0]) * radius_m) / voxel_size_m)
-                  .astype(np.int64) + _OFFSET)
-        # One voxel of margin either side: the bound is then safe from rounding.
-        bounds = ((int(lo) - 1) << _X_SHIFT, (int(hi) + 2) << _X_SHIFT)
-        main, recent = self._main.slab(*bounds), self._recent.slab(*bounds)
+    def in_slab(self, lo_key: int, hi_key: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points, smoothness, viewpoints) of the anchors with lo_key <= key < hi_key (a
+        slab along x: local_map.voxel_x_slab), sorted by voxel key."""
+        main, recent = self._main.slab(lo_key, hi_key), self._recent.slab(lo_key, hi_key)
         if recent.start == recent.stop:  # nothing recent here
             return (self._main.points[main], self._main.smoothness[main],
                     self._main.viewpoints[main])

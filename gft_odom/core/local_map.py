@@ -44,10 +44,23 @@ KEYFRAME_EVICTIONS = ('oldest', 'farthest')
 VOXEL_KEEPS = ('newest', 'oldest', 'nearest', 'mean', 'mean_rough')
 
 
+# Voxel keys: 21 bits per axis, each index offset by 2^20; x is the major axis.
+_KEY_OFFSET = 1 << 20
+_KEY_X_SHIFT = 42
+
+
 def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """One int64 key per point naming its voxel (21 bits per axis, +-1e6 voxels)."""
-    ijk = np.floor(points_xyz / voxel_size_m).astype(np.int64) + (1 << 20)
-    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+    ijk = np.floor(points_xyz / voxel_size_m).astype(np.int64) + _KEY_OFFSET
+    return (ijk[:, 0] << _KEY_X_SHIFT) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def voxel_x_slab(x_m: float, radius_m: float, voxel_size_m: float) -> tuple[int, int]:
+    """[lo, hi) of the voxel keys of every voxel within `radius_m` of `x_m` along x (sorted
+    keys hold them in one run), with one voxel of margin either side against rounding."""
+    lo, hi = (np.floor((x_m + np.array([-1.0, 1.0]) * radius_m) / voxel_size_m)
+              .astype(np.int64) + _KEY_OFFSET)
+    return (int(lo) - 1) << _KEY_X_SHIFT, (int(hi) + 2) << _KEY_X_SHIFT
 
 
 def voxel_downsample_indices(points_xyz: np.ndarray, voxel_size_m: float,
@@ -274,8 +287,8 @@ class LocalMap:
         at `centre_xyz`, sorted by voxel key: those near it (the radius crop follows), of them
         every smooth one, and a rough one only when seen from within `rough_anchor_view_rad`
         of the direction it was measured from."""
-        points, smoothness, viewpoints = self._anchors.near(centre_xyz[0], self.max_range_m,
-                                                            self.voxel_size_m)
+        points, smoothness, viewpoints = self._anchors.in_slab(
+            *voxel_x_slab(centre_xyz[0], self.max_range_m, self.voxel_size_m))
         if self.rough_anchor_view_rad is None or self.anchor_smoothness <= 0.0:
             return points, smoothness, viewpoints
         to_view = viewpoints - points
@@ -296,15 +309,15 @@ class LocalMap:
 
     def _voxel_means(self, points, viewpoints, smoothness):
         """(centroids, mean viewpoints, mean smoothness or None) of the voxels; with
-        'mean_rough' a voxel smooth on average keeps its first (oldest) point and view."""
+        'mean_rough' a voxel smooth on average (the anchor threshold; without anchors none
+        is) keeps its first (oldest) point and view."""
         if smoothness is None:
             centroids, views, _ = voxel_means(points, self.voxel_size_m, viewpoints)
             return centroids, views, None
         centroids, views, smooth, first = voxel_means(points, self.voxel_size_m, viewpoints,
                                                       smoothness)
-        if self.voxel_keeps == 'mean_rough':
-            threshold = 0.75 if self.anchor_smoothness is None else self.anchor_smoothness
-            one = smooth >= threshold  # NaN: rough
+        if self.voxel_keeps == 'mean_rough' and self.anchor_smoothness is not None:
+            one = self._is_smooth(smooth)  # NaN: rough
             centroids[one], views[one] = points[first[one]], viewpoints[first[one]]
         return centroids, views, smooth
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gft_odom.core.anchors import AnchorStore, _insert
-from gft_odom.core.local_map import LocalMap, voxel_keys
+from gft_odom.core.local_map import LocalMap, voxel_keys, voxel_x_slab
 
 
 def test_insert_matches_numpy_for_rows_and_values():
@@ -42,7 +42,7 @@ def test_the_store_serves_what_one_sorted_array_would(recent_rows):
         every = np.vstack([every, points[first][~known]])
     assert len(store) == every.shape[0]
     for x_m in (-60.0, 0.0, 75.0):
-        points, _, _ = store.near(x_m, 20.0, 0.3)
+        points, _, _ = store.in_slab(*voxel_x_slab(x_m, 20.0, 0.3))
         within = np.abs(points[:, 0] - x_m) <= 20.0
         # A superset by at most the margin voxels, in key order, holding every anchor within.
         assert np.all(np.abs(points[:, 0] - x_m) <= 20.0 + 0.9)
@@ -60,7 +60,7 @@ def test_found_anchors_report_their_smoothness_and_can_be_replaced():
     assert known.tolist() == [True, True, False]
     assert smoothness[:2].tolist() == [0.2, 0.9] and np.isnan(smoothness[2])
     store.replace(keys[:1], np.array([[0.2, 0.2, 0.2]]), np.array([1.0]), np.ones((1, 3)))
-    points_near, smooth_near, views = store.near(0.0, 1.0, 0.3)
+    points_near, smooth_near, views = store.in_slab(*voxel_x_slab(0.0, 1.0, 0.3))
     assert points_near.tolist() == [[0.2, 0.2, 0.2]]
     assert smooth_near.tolist() == [1.0] and views.tolist() == [[1.0, 1.0, 1.0]]
 
