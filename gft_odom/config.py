@@ -39,6 +39,9 @@ class PipelineConfig:
     # A control for ablations only: each scan's frequencies are permuted among its points
     # before registration (their distribution kept, what they tell about each point lost).
     shuffle_frequencies: bool = False
+    # Which permutation the control draws (0: the one of the records since session 6); a
+    # few seeds give the control's spread, against which the frequency's choice is judged.
+    shuffle_seed: int = 0
 
     def validate(self) -> None:
         """Raise ConfigError naming the first value that cannot work."""

@@ -285,7 +285,9 @@ class OdometryPipeline:
         `pipeline.shuffle_frequencies`) the same values permuted, seeded by the stamp."""
         if nu is None or not self.config.pipeline.shuffle_frequencies:
             return nu
-        return np.random.default_rng(int(stamp_ns) % (1 << 32)).permutation(nu)
+        seed = self.config.pipeline.shuffle_seed
+        stamp = int(stamp_ns) % (1 << 32)
+        return np.random.default_rng(stamp if seed == 0 else [stamp, seed]).permutation(nu)
 
     def _rejected(self, scan: Scan, rejection: Rejection) -> FrameResult:
         T_world_sensor = self.registration.T_world_sensor.copy()

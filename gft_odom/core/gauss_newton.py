@@ -108,6 +108,26 @@ class MapTarget:
         self._known[at] = True
         self.n_normals_inherited += at.shape[0]
 
+    def adopt_normals(self, previous: 'MapTarget', new_of_old: np.ndarray) -> None:
+        """Take over every normal `previous` had for the points still in this map, whatever
+        came or went around them: a point keeps the normal of the map it entered ('kept' map
+        normals; cheaper than `inherit_normals`, and not what a fresh estimate would give)."""
+        if (self.normals is not None or previous.normals is not None
+                or previous._k != self._k or self._k == 0):
+            return
+        old = np.flatnonzero(previous._known & (new_of_old >= 0))
+        at = new_of_old[old]
+        self._estimated[at] = previous._estimated[old]
+        self._known[at] = True
+        self.n_normals_inherited += at.shape[0]
+
+    def estimate_missing_normals(self) -> None:
+        """Estimate every normal not known yet, in one batch."""
+        if self.normals is None and self._k:
+            missing = np.flatnonzero(~self._known)
+            if missing.shape[0]:
+                self._estimate_normals(missing)
+
     def _estimate_normals(self, rows: np.ndarray) -> None:
         """PCA normals: the least-variance axis of each point's nearest neighbours."""
         distance, neighbours = self.tree.query(self.points[rows], k=self._k)

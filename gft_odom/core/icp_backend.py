@@ -85,6 +85,7 @@ class IcpBackend:
         if self.solves_on_map_target:
             # 'on_demand': the map's target estimates the normals its pairs use.
             local_map.with_normals = config.map_normals == 'rebuild'
+            local_map.keep_normals = config.map_normals == 'kept'
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
         # the same with unknown kept NaN (frequency_affinity_m); set per scan.
         self.source_smoothness: np.ndarray | None = None

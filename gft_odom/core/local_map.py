@@ -131,6 +131,10 @@ class LocalMap:
         self.keyframe_rotation_rad = keyframe_rotation_rad
         self.normal_neighbours = normal_neighbours
         self.with_normals = with_normals
+        # Without `with_normals`: True estimates a point's normal once, when it enters the
+        # served map, and keeps it while the point stays ('kept'); False estimates it when a
+        # pair first asks, carried over only while its neighbourhood stays ('on_demand').
+        self.keep_normals = False
         self.with_covariances = with_covariances
         if eviction not in KEYFRAME_EVICTIONS:
             raise ValueError(f'eviction must be one of {KEYFRAME_EVICTIONS}, got {eviction!r}')
@@ -190,7 +194,12 @@ class LocalMap:
                                      normal_neighbours=self.normal_neighbours)
             previous, self._previous_target = self._previous_target, None
             if previous is not None:
-                self._target.inherit_normals(previous, self._index_of(previous.points))
+                if self.keep_normals:
+                    self._target.adopt_normals(previous, self._index_of(previous.points))
+                else:
+                    self._target.inherit_normals(previous, self._index_of(previous.points))
+            if self.keep_normals:
+                self._target.estimate_missing_normals()
         return self._target
 
     def _index_of(self, points_xyz: np.ndarray) -> np.ndarray:

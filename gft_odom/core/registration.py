@@ -85,7 +85,7 @@ MAP_POINTS_FROM = ('registration', 'scan')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
 SOLVERS = ('open3d', 'gauss_newton', 'map_tree')
-MAP_NORMALS = ('rebuild', 'on_demand')
+MAP_NORMALS = ('rebuild', 'on_demand', 'kept')
 VOXEL_PRIORITIES = ('first', 'smoothest')
 # Every status `register` / `advance_with_prediction` can return.
 STATUSES = ('first', 'ok', 'recovered', 'fallback_too_few_points', 'fallback_low_fitness',
@@ -239,7 +239,9 @@ class RegistrationConfig:
     # keyframe's map update, which runs after the pose) or 'on_demand' (a point's when a
     # pair first uses it, carried over a rebuild while its neighbours stay its own: the same
     # normals, so the same trajectory; the work moves into the matches, before the pose,
-    # docs/registration.md sessions 12-13).
+    # docs/registration.md sessions 12-13) or 'kept' (a point's once, when it enters the map,
+    # kept while it stays: only the new points' at a keyframe, not what a fresh estimate
+    # would give where new neighbours came; session 15).
     map_normals: str = 'rebuild'
     # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
     # 'frequency' (the scan point's graph frequency decides: smooth -> plane, rough -> the
@@ -322,9 +324,9 @@ class RegistrationConfig:
         if self.map_normals not in MAP_NORMALS:
             raise ConfigError(f'map_normals must be one of {MAP_NORMALS}, '
                               f'got {self.map_normals!r}')
-        if self.map_normals == 'on_demand' and self.solver == 'open3d':
-            raise ConfigError("map_normals 'on_demand' needs solver 'map_tree' or "
-                              "'gauss_newton' (open3d's ICP reads every map normal)")
+        if self.map_normals != 'rebuild' and self.solver == 'open3d':
+            raise ConfigError(f"map_normals {self.map_normals!r} needs solver 'map_tree' or "
+                              "'gauss_newton' (open3d's ICP estimates its own)")
         if self.residual_model not in RESIDUAL_MODELS:
             raise ConfigError(f'residual_model must be one of {RESIDUAL_MODELS}, '
                               f'got {self.residual_model!r}')

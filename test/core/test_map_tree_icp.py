@@ -232,6 +232,39 @@ def test_a_rebuilt_map_inherits_the_normals_it_would_estimate():
                                   np.sort(fresh._neighbours[inherited], axis=1))
 
 
+def test_kept_normals_are_estimated_once_when_a_point_enters_the_map():
+    from gft_odom.core.local_map import LocalMap
+    rng = np.random.default_rng(8)
+    scene = box_scene(seed=8)
+    local_map = LocalMap(0.1, 100.0, 100_000, 2, 1.0, 0.2, 15, with_normals=False)
+    local_map.keep_normals = True
+    local_map.add_keyframe(scene[:4000], np.eye(4))
+    before = local_map.target()
+    every = np.arange(len(local_map))
+    assert before._known.all() and before.n_normals_estimated == len(local_map)
+    first = before.normals_at(every).copy()
+    T = np.eye(4)
+    T[0, 3] = 1.5
+    local_map.add_keyframe(scene[4000:] + rng.normal(0.0, 0.01, scene[4000:].shape), T)
+    after = local_map.target()
+    every = np.arange(len(local_map))
+    of_old = local_map._index_of(before.points)
+    stayed = of_old >= 0
+    # Every point that stayed keeps its first normal, even where new neighbours came near;
+    # only the points new to the map were estimated, all at the update.
+    assert after._known.all()
+    assert after.n_normals_inherited == np.count_nonzero(stayed)
+    assert after.n_normals_estimated == len(local_map) - np.count_nonzero(stayed) > 0
+    np.testing.assert_array_equal(after.normals_at(of_old[stayed]), first[stayed])
+    fresh = MapTarget(after.points, None)
+    new = np.setdiff1d(every, of_old[stayed])
+    dot = np.einsum('ij,ij->i', after.normals_at(new), fresh.normals_at(new))
+    np.testing.assert_allclose(np.abs(dot), 1.0, atol=1e-9)
+    # Not what a fresh estimate gives everywhere: some stayed points' neighbourhoods changed.
+    dot = np.einsum('ij,ij->i', after.normals_at(every), fresh.normals_at(every))
+    assert np.min(np.abs(dot)) < 1.0 - 1e-6
+
+
 @pytest.mark.parametrize('solver', ['map_tree', 'gauss_newton'])
 def test_on_demand_normals_give_the_rebuilds_trajectory(solver):
     points = box_scene(seed=9)

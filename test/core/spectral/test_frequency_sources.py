@@ -70,3 +70,20 @@ def test_pipeline_with_local_map_source_runs_and_keeps_all_with_all_pass():
         result = pipeline.register_frame(dataclasses.replace(wall_scan(0.05 * k, seed=k),
                                                              stamp_ns=k * 100_000_000))
         assert result.nu is not None and result.n_points_kept == result.n_points_in
+
+
+def test_the_shuffled_control_permutes_each_scans_frequencies_by_its_seed():
+    nu = np.linspace(0.0, 1.0, 500)
+    drawn = {}
+    for seed in (0, 0, 1, 2):
+        pipeline = OdometryPipeline(with_values(GftOdomConfig(), {
+            'pipeline.shuffle_frequencies': True, 'pipeline.shuffle_seed': seed}))
+        drawn.setdefault(seed, []).append(pipeline._registration_nu(nu, 123_456_789))
+    for permuted, *_ in drawn.values():
+        np.testing.assert_array_equal(np.sort(permuted), nu)  # the same values
+        assert np.mean(permuted == nu) < 0.05  # on other points
+    np.testing.assert_array_equal(*drawn[0])  # a seed draws one permutation
+    assert not np.array_equal(drawn[0][0], drawn[1][0])
+    assert not np.array_equal(drawn[1][0], drawn[2][0])
+    unshuffled = OdometryPipeline(GftOdomConfig())
+    assert unshuffled._registration_nu(nu, 123_456_789) is nu
