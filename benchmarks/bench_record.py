@@ -117,6 +117,11 @@ ABLATION_ENTRIES += (
           _VIEW + (('pipeline.shuffle_frequencies', True),)),
     Entry('view-gated rough anchors, no frequency (--no-filter)', 'default', _VIEW),
 )
+# Session 15: the control's spread, two more permutations of each scan's frequencies.
+ABLATION_ENTRIES += tuple(
+    Entry(f'view-gated rough anchors, shuffled frequency (seed {seed})', 'default+gft',
+          _VIEW + (('pipeline.shuffle_frequencies', True), ('pipeline.shuffle_seed', seed)))
+    for seed in (1, 2))
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
 # drives only; the held-out record then reports the one chosen against the old default.
@@ -163,6 +168,19 @@ STUDY_ENTRIES = (
     Entry('rough map voxels keep the mean, shuffled frequency', 'default+gft',
           (('registration.map_voxel_keeps', 'mean_rough'),
            ('pipeline.shuffle_frequencies', True)) + NO_VIEW_GATE),
+    # Session 15: a keyframe on rotation alone. A VLP-16 sees all around, so turning on the
+    # spot shows little new, while a keyframe's map work (~150 ms) overruns the scan period;
+    # in a headland turn at 0.2 rad one comes every second or third scan.
+    Entry('default (session 14)', 'default+gft'),
+    Entry('rotation keyframes 0.5 rad', 'default+gft',
+          (('registration.keyframe_rotation_rad', 0.5),)),
+    Entry('rotation keyframes 1 rad', 'default+gft',
+          (('registration.keyframe_rotation_rad', 1.0),)),
+    Entry('no rotation keyframes', 'default+gft',
+          (('registration.keyframe_rotation_rad', 3.2),)),
+    # Session 15: a map point's normal estimated once, when it enters the map, and kept (the
+    # rebuild's normals of every point are most of a keyframe's map work).
+    Entry('map normals kept', 'default+gft', (('registration.map_normals', 'kept'),)),
 )
 
 
