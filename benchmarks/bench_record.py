@@ -181,6 +181,12 @@ STUDY_ENTRIES = (
     # Session 15: a map point's normal estimated once, when it enters the map, and kept (the
     # rebuild's normals of every point are most of a keyframe's map work).
     Entry('map normals kept', 'default+gft', (('registration.map_normals', 'kept'),)),
+    # Session 15: the shuffled control beat the frequency where rows are met again from the
+    # other side; serve a share of the rough anchors (drawn by voxel) from any side as well.
+    Entry('rough anchors from any side, share 0.25', 'default+gft',
+          (('registration.map_anchor_rough_any_side_share', 0.25),)),
+    Entry('rough anchors from any side, share 0.5', 'default+gft',
+          (('registration.map_anchor_rough_any_side_share', 0.5),)),
 )
 
 

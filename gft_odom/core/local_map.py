@@ -55,6 +55,13 @@ def voxel_keys(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     return (ijk[:, 0] << _KEY_X_SHIFT) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
+def voxel_draw(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """A number in [0, 1) per point, fixed by its voxel (a multiplicative hash of the key):
+    a share drawn by it is the same voxels at every rebuild."""
+    mixed = voxel_keys(points_xyz, voxel_size_m).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    return (mixed >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
 def voxel_x_slab(x_m: float, radius_m: float, voxel_size_m: float) -> tuple[int, int]:
     """[lo, hi) of the voxel keys of every voxel within `radius_m` of `x_m` along x (sorted
     keys hold them in one run), with one voxel of margin either side against rounding."""
@@ -123,7 +130,8 @@ class LocalMap:
                  with_covariances: bool = False, eviction: str = 'oldest',
                  voxel_keeps: str = 'oldest', anchor_smoothness: float | None = None,
                  anchor_max_points: int = 2_000_000,
-                 rough_anchor_view_rad: float | None = None):
+                 rough_anchor_view_rad: float | None = None,
+                 rough_anchor_any_side_share: float = 0.0):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -150,6 +158,8 @@ class LocalMap:
         # Rough points stay too, served only when seen from within this angle of where they
         # were measured from; None: rough points leave with their keyframe.
         self.rough_anchor_view_rad = rough_anchor_view_rad
+        # This share of the rough anchors (a fixed draw by voxel) is served from any side too.
+        self.rough_anchor_any_side_share = rough_anchor_any_side_share
         self._anchors = AnchorStore()
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
@@ -307,6 +317,8 @@ class LocalMap:
                         * np.einsum('ij,ij->i', to_centre, to_centre))
         seen_alike = dot >= np.cos(self.rough_anchor_view_rad) * norms
         served = self._is_smooth(smoothness) | seen_alike
+        if self.rough_anchor_any_side_share > 0.0:
+            served |= voxel_draw(points, self.voxel_size_m) < self.rough_anchor_any_side_share
         return points[served], smoothness[served], viewpoints[served]
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):

@@ -167,6 +167,10 @@ class RegistrationConfig:
     # held-out drives (session 14) it gained where rows are met again late (spiral-203,
     # every_other_row-212) and lost 12 % on every_other_row-202 (docs/registration.md).
     map_anchor_rough_view_deg: float = 60.0
+    # This share of the rough anchors (drawn by voxel) is served from any side as well. The
+    # shuffled control, which serves a random share from any side, beat the frequency on the
+    # drives that meet rows again from the other side (session 15). 0: none.
+    map_anchor_rough_any_side_share: float = 0.0
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
@@ -377,6 +381,9 @@ class RegistrationConfig:
                      'recovery_turn_relative_fitness'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
+        if not 0.0 <= self.map_anchor_rough_any_side_share <= 1.0:
+            raise ConfigError(f'map_anchor_rough_any_side_share must be in [0, 1], got '
+                              f'{self.map_anchor_rough_any_side_share}')
         if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
             raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
                               f'{self.map_anchor_rough_view_deg}')
@@ -444,7 +451,8 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
         anchor_smoothness=cfg.map_anchor_smoothness if cfg.map_anchors else None,
         anchor_max_points=cfg.map_anchor_max_points,
         rough_anchor_view_rad=(math.radians(cfg.map_anchor_rough_view_deg)
-                               if cfg.map_anchor_rough_view_deg > 0.0 else None))
+                               if cfg.map_anchor_rough_view_deg > 0.0 else None),
+        rough_anchor_any_side_share=cfg.map_anchor_rough_any_side_share)
 
 
 class TrustPolicy:

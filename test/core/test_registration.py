@@ -974,6 +974,34 @@ def test_without_frequencies_rough_anchors_keep_every_point_view_gated():
     assert local_map.points_xyz.round(1).tolist() == [[5.0, 6.0, 0.0]]
 
 
+def test_a_share_of_rough_anchors_drawn_by_voxel_is_served_from_any_side():
+    from gft_odom.core.local_map import LocalMap, voxel_draw
+    rng = np.random.default_rng(3)
+    canopy = np.column_stack([rng.uniform(-1.0, 1.0, 4000), rng.uniform(1.5, 2.5, 4000),
+                              rng.uniform(0.0, 1.0, 4000)])
+    draw = voxel_draw(canopy, 0.1)
+    # Fixed by the voxel, spread evenly over [0, 1).
+    np.testing.assert_array_equal(draw, voxel_draw(canopy + 1e-4 * (canopy % 0.1 < 0.05), 0.1))
+    assert np.all((draw >= 0.0) & (draw < 1.0))
+    assert abs(np.mean(draw < 0.25) - 0.25) < 0.03
+    served = {}
+    for share in (0.0, 0.25, 1.0):
+        local_map = LocalMap(0.1, 100.0, 100_000, 1, 1.0, 0.2, 5, with_normals=False,
+                             anchor_smoothness=0.75, rough_anchor_view_rad=np.radians(60.0),
+                             rough_anchor_any_side_share=share)
+        T = np.eye(4)
+        local_map.add_keyframe(canopy, T, np.full(len(canopy), 0.1))
+        T2 = T.copy()
+        T2[1, 3] = 4.0  # the far lane: the canopy is seen from its other side
+        local_map.add_keyframe(np.array([[0.0, 6.0, 0.0]]), T2, np.array([0.9]))
+        served[share] = len(local_map) - 1
+    anchors = local_map.n_anchors
+    assert served[0.0] == 0 and served[1.0] == anchors
+    assert abs(served[0.25] / anchors - 0.25) < 0.05
+    with pytest.raises(ConfigError, match='map_anchor_rough_any_side_share'):
+        RegistrationConfig(map_anchor_rough_any_side_share=1.5).validate()
+
+
 def test_rough_anchor_view_angle_is_validated():
     with pytest.raises(ConfigError, match='map_anchor_rough_view_deg'):
         RegistrationConfig(map_anchor_rough_view_deg=200.0).validate()
