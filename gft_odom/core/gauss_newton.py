@@ -79,44 +79,37 @@ class MapTarget:
             self._estimate_normals(np.unique(missing))
         return self._estimated[index]
 
-    def inherit_normals(self, previous: 'MapTarget', new_of_old: np.ndarray) -> None:
+    def inherit_normals(self, previous: 'MapTarget', new_of_old: np.ndarray,
+                        kept: bool = False) -> None:
         """Take over the normals `previous` (the map before a rebuild) estimated, for the
         points still in this map (`new_of_old`: each old point's index here, -1 when gone)
         whose k nearest neighbours are still theirs: none of them left, and no new point
         came nearer than the farthest. Those normals are what estimating them again would
-        give, so most of a rebuilt map needs none estimated."""
+        give, so most of a rebuilt map needs none estimated. With `kept`, every normal of a
+        point still here, whatever came or went around it ('kept' map normals: cheaper, and
+        not what a fresh estimate would give)."""
         if (self.normals is not None or previous.normals is not None
                 or previous._k != self._k or self._k == 0):
             return
         old = np.flatnonzero(previous._known & (new_of_old >= 0))
         if old.shape[0] == 0:
             return
-        neighbours = new_of_old[previous._neighbours[old]]
-        intact = np.all(neighbours >= 0, axis=1)
-        added = np.ones(self.points.shape[0], dtype=bool)
-        added[new_of_old[new_of_old >= 0]] = False
-        if added.any():
-            reach = previous._reach_m[old]
-            nearest, _ = cKDTree(self.points[added]).query(previous.points[old],
-                                                           distance_upper_bound=reach.max())
-            intact &= ~(nearest < reach)
-        old, neighbours = old[intact], neighbours[intact]
-        at = new_of_old[old]
-        self._estimated[at] = previous._estimated[old]
-        self._neighbours[at] = neighbours
-        self._reach_m[at] = previous._reach_m[old]
-        self._known[at] = True
-        self.n_normals_inherited += at.shape[0]
-
-    def adopt_normals(self, previous: 'MapTarget', new_of_old: np.ndarray) -> None:
-        """Take over every normal `previous` had for the points still in this map, whatever
-        came or went around them: a point keeps the normal of the map it entered ('kept' map
-        normals; cheaper than `inherit_normals`, and not what a fresh estimate would give)."""
-        if (self.normals is not None or previous.normals is not None
-                or previous._k != self._k or self._k == 0):
-            return
-        old = np.flatnonzero(previous._known & (new_of_old >= 0))
-        at = new_of_old[old]
+        if kept:
+            at = new_of_old[old]
+        else:
+            neighbours = new_of_old[previous._neighbours[old]]
+            intact = np.all(neighbours >= 0, axis=1)
+            added = np.ones(self.points.shape[0], dtype=bool)
+            added[new_of_old[new_of_old >= 0]] = False
+            if added.any():
+                reach = previous._reach_m[old]
+                nearest, _ = cKDTree(self.points[added]).query(previous.points[old],
+                                                               distance_upper_bound=reach.max())
+                intact &= ~(nearest < reach)
+            old, neighbours = old[intact], neighbours[intact]
+            at = new_of_old[old]
+            self._neighbours[at] = neighbours
+            self._reach_m[at] = previous._reach_m[old]
         self._estimated[at] = previous._estimated[old]
         self._known[at] = True
         self.n_normals_inherited += at.shape[0]

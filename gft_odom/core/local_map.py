@@ -204,10 +204,8 @@ class LocalMap:
                                      normal_neighbours=self.normal_neighbours)
             previous, self._previous_target = self._previous_target, None
             if previous is not None:
-                if self.keep_normals:
-                    self._target.adopt_normals(previous, self._index_of(previous.points))
-                else:
-                    self._target.inherit_normals(previous, self._index_of(previous.points))
+                self._target.inherit_normals(previous, self._index_of(previous.points),
+                                             kept=self.keep_normals)
             if self.keep_normals:
                 self._target.estimate_missing_normals()
         return self._target

@@ -378,12 +378,9 @@ class RegistrationConfig:
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
         for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness',
-                     'recovery_turn_relative_fitness'):
+                     'recovery_turn_relative_fitness', 'map_anchor_rough_any_side_share'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
-        if not 0.0 <= self.map_anchor_rough_any_side_share <= 1.0:
-            raise ConfigError(f'map_anchor_rough_any_side_share must be in [0, 1], got '
-                              f'{self.map_anchor_rough_any_side_share}')
         if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
             raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
                               f'{self.map_anchor_rough_view_deg}')
