@@ -50,6 +50,8 @@ class PipelineConfig:
         if not self.max_range_m > self.min_range_m:
             raise ConfigError(
                 f'max_range_m ({self.max_range_m}) must be > min_range_m ({self.min_range_m})')
+        if self.shuffle_seed < 0:
+            raise ConfigError(f'shuffle_seed must be >= 0, got {self.shuffle_seed}')
         if self.max_points_per_scan < 100:
             raise ConfigError(
                 f'max_points_per_scan must be >= 100, got {self.max_points_per_scan}')

@@ -6,8 +6,9 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
-from gft_odom.config import GftOdomConfig, with_values
+from gft_odom.config import ConfigError, GftOdomConfig, with_values
 from gft_odom.core.spectral import SpectralConfig, SpectralFilter
 from gft_odom.core.spectral.sources import LocalMapSource, ScanSource, make_source
 from gft_odom.core.types import Scan
@@ -87,3 +88,8 @@ def test_the_shuffled_control_permutes_each_scans_frequencies_by_its_seed():
     assert not np.array_equal(drawn[1][0], drawn[2][0])
     unshuffled = OdometryPipeline(GftOdomConfig())
     assert unshuffled._registration_nu(nu, 123_456_789) is nu
+
+
+def test_a_negative_shuffle_seed_is_refused():
+    with pytest.raises(ConfigError, match='shuffle_seed'):
+        with_values(GftOdomConfig(), {'pipeline.shuffle_seed': -1})
