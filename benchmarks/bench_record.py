@@ -1,8 +1,9 @@
 """Benchmark of record: gft_odom against its peers on long, varied, held-out drives.
 
 Usage:
-  .venv/bin/python benchmarks/bench_record.py [--drives held-out|training|new-held-out|edge]
-      [--jobs N] [--cache DIR] [--only LABEL ...] [--out benchmarks/results]
+  .venv/bin/python benchmarks/bench_record.py
+      [--drives held-out|training|new-held-out|edge|confirm] [--jobs N] [--cache DIR]
+      [--only LABEL ...] [--out benchmarks/results]
 
 Simulates the drives once into the cache (`~/.cache/gft_odom/drives` or $GFT_ODOM_DRIVES;
 ~0.09 s per full-resolution scan, so the 7 held-out drives, ~2.4 km / ~24k scans, take ~35 min
@@ -18,6 +19,7 @@ import time
 from pathlib import Path
 
 from gft_odom.bench.drives import (
+    CONFIRM_DRIVES,
     EDGE_DRIVES,
     HELD_OUT_DRIVES,
     NEW_HELD_OUT_DRIVES,
@@ -31,7 +33,8 @@ from gft_odom.bench.report import machine_info
 RESULTS = Path(__file__).resolve().parent / 'results'
 # --drives: the drive set by name (its results go to <kind>_<name>.*).
 DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
-              'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES}
+              'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
+              'confirm': CONFIRM_DRIVES}
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels
@@ -123,6 +126,17 @@ ABLATION_ENTRIES += tuple(
           _VIEW + (('pipeline.shuffle_frequencies', True), ('pipeline.shuffle_seed', seed)))
     for seed in (1, 2))
 
+# Session 16: a share of the rough anchors served from any side (session 15: 2 % on the
+# training drives, 7 % on the held-out ones), its frequency ablation, on drives never seen.
+_ANY_SIDE = _VIEW + (('registration.map_anchor_rough_any_side_share', 0.25),)
+ABLATION_ENTRIES += (
+    Entry('any-side share 0.25 (frequency)', 'default+gft', _ANY_SIDE),
+    Entry('any-side share 0.25, shuffled frequency', 'default+gft',
+          _ANY_SIDE + (('pipeline.shuffle_frequencies', True),)),
+    Entry('any-side share 0.25, no frequency (--no-filter)', 'default', _ANY_SIDE),
+    Entry('GenZ-ICP', 'genz-icp'),
+)
+
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
 # drives only; the held-out record then reports the one chosen against the old default.
 _DESKEW = ('registration.deskew', True)
@@ -184,6 +198,10 @@ STUDY_ENTRIES = (
           (('registration.map_anchor_rough_any_side_share', 0.25),)),
     Entry('rough anchors from any side, share 0.5', 'default+gft',
           (('registration.map_anchor_rough_any_side_share', 0.5),)),
+    # Session 16: a keyframe's map rebuild on a thread while the next scan is matched
+    # against the map before it (the at-rate p95: the rebuild no longer holds up that scan).
+    Entry('map update in the background', 'default+gft',
+          (('registration.map_update', 'background'),)),
 )
 
 

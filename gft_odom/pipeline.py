@@ -346,6 +346,7 @@ class OdometryPipeline:
         from scipy.spatial import cKDTree
         reg = self.registration
         reg.update_map()
+        reg.local_map.adopt()  # map_update 'background': the newest rebuild, a scan early
         points = reg.local_map.points_xyz
         if not len(points) and reg._prev_scan is not None:
             points = transform_points(reg.T_world_trusted, np.asarray(reg._prev_scan.points))

@@ -4,7 +4,8 @@ Training drives are the only ones any choice of ours was made on; the held-out d
 seeds, every route) are only ever reported. The new held-out drives (seeds 211-214, added after
 every choice so far) and the edge drives (seeds 221-222: edge_lawnmower, a fast lawn-mower
 that starts on the block's edge and turns out into an open headland) were never used for a
-choice either: they are only reported. Each drive is simulated once with
+choice either: they are only reported. The confirmation drives (seeds 231-234) check a change
+that held-out figures suggested, on seeds no one had seen. Each drive is simulated once with
 `simulate_to_bag(..., vary=True)` into a cache outside the repository (default
 `~/.cache/gft_odom/drives`, or `$GFT_ODOM_DRIVES`); a drive whose `sim_metadata.json` is
 complete is reused.
@@ -52,6 +53,10 @@ HELD_OUT_DRIVES = (Drive('lawnmower', 201, 280.0), Drive('every_other_row', 202,
 NEW_HELD_OUT_DRIVES = (Drive('lawnmower', 211, 280.0), Drive('every_other_row', 212, 280.0),
                        Drive('spiral', 213, 280.0), Drive('out_and_back', 214, 280.0))
 EDGE_DRIVES = (Drive('edge_lawnmower', 221, 280.0), Drive('edge_lawnmower', 222, 280.0))
+# Seeds 231-234, added in session 16 to confirm (or refute) a change first seen on held-out
+# figures: no choice was made on them before they were run.
+CONFIRM_DRIVES = (Drive('lawnmower', 231, 280.0), Drive('every_other_row', 232, 280.0),
+                  Drive('spiral', 233, 280.0), Drive('out_and_back', 234, 280.0))
 
 
 def default_cache_dir() -> Path:

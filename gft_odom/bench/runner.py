@@ -157,23 +157,40 @@ def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfi
 
 def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
                kiss_config: KissIcpConfig = KissIcpConfig(), max_scans: int | None = None,
-               ground_truth: Trajectory | None = None) -> MethodRun:
+               ground_truth: Trajectory | None = None, paced: bool = False) -> MethodRun:
     """Replay `sequence` through `method`, timing read + decode + the per-scan call up to
-    the pose, and apart the map work a method leaves after it."""
+    the pose, and apart the map work a method leaves after it.
+
+    `paced`: each scan is handed over no earlier than its stamp says it arrives (the
+    sensor's rate, as on the robot), and its latency runs from that arrival: a scan waits
+    while the work before it (a map update too, and a thread's share of the cores) is not
+    done. The latency metrics are then measured at the sensor's rate, not modelled."""
     config = method_config(base_config, method)
     step, update_map = _make_odometry(method, config, kiss_config)
     if ground_truth is None:
         ground_truth = read_ground_truth(sequence.gt_path)
     stamps, poses, latency, points_in, points_kept, statuses = [], [], [], [], [], []
     map_update = []
+    origin_s: float | None = None  # paced: the wall time scan stamp 0 arrives at
+    first_stamp_ns = 0
     with ScanBagReader([sequence.bag_path]) as reader:
         for scan, t_decode in timed_scans(reader, scan_count(reader, max_scans)):
+            arrival_s = None
+            if paced:
+                if origin_s is None:
+                    origin_s, first_stamp_ns = time.perf_counter(), scan.stamp_ns
+                # A stamp going back (a corrupted bag) arrives at once.
+                arrival_s = origin_s + max(scan.stamp_ns - first_stamp_ns, 0) * 1e-9
+                early_s = arrival_s - time.perf_counter()
+                if early_s > 0.0:
+                    time.sleep(early_s)
             t0 = time.perf_counter()
             out = step(scan)
             if out is None:
                 continue
             stamp_ns, T_world_sensor, n_in, n_kept, status = out
-            latency.append(t_decode + time.perf_counter() - t0)
+            t_pose = time.perf_counter()
+            latency.append(t_decode + t_pose - (t0 if arrival_s is None else arrival_s))
             t1 = time.perf_counter()
             update_map()
             map_update.append(time.perf_counter() - t1)
@@ -191,8 +208,10 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
         stage_s={}, points_in=np.asarray(points_in), points_kept=np.asarray(points_kept),
         statuses=statuses, skipped_messages=skipped, ground_truth=ground_truth,
         ground_truth_is_gps=True, map_update_s=np.asarray(map_update),
-        scan_stamps_ns=np.array(stamps, dtype=np.int64))
+        # Paced, the latency is already at the sensor's rate: no model of it on top.
+        scan_stamps_ns=None if paced else np.array(stamps, dtype=np.int64))
     metrics = summarize(replay, config)
+    metrics['paced'] = paced
     metrics['method'] = method
     metrics['sequence'] = sequence.name
     metrics['scenario'] = sequence.scenario

@@ -16,9 +16,19 @@ keyframe sees it from about the side it was measured from (within that angle of 
 seen backwards). Porous canopy returns depend on where they were seen from: the crown's
 other face is a different cloud, a metre or two away, that pulls a scan from the far lane
 sideways. Smooth points look the same from every side and are served from anywhere.
+
+Background rebuilds (`add_keyframe(..., background=True)`): the window changes at once, the
+merge and every normal are computed on a thread of their own (scipy and numpy, which let the
+interpreter run the next scan's match meanwhile; open3d's normals would hold it), and the
+map served stays the previous one until `adopt`. The caller chooses when it adopts, so the
+poses do not depend on how fast the thread was.
 """
 
 from __future__ import annotations
+
+import threading
+import time
+from typing import Callable, NamedTuple
 
 import numpy as np
 import open3d as o3d
@@ -121,6 +131,49 @@ def to_cloud(points_xyz: np.ndarray) -> o3d.geometry.PointCloud:
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points_xyz)))
 
 
+class _Served(NamedTuple):
+    """What a rebuild serves: the cloud, per point the smoothness of the scan point it came
+    from (None when unknown) and where the sensor stood, and (background) its target."""
+
+    cloud: o3d.geometry.PointCloud
+    smoothness: np.ndarray | None
+    viewpoints: np.ndarray
+    target: MapTarget | None = None
+
+
+class _Worker:
+    """One function at a time on a thread; its result (or its exception) when waited for."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._outcome: tuple = (None, None)
+
+    @property
+    def pending(self) -> bool:
+        return self._thread is not None
+
+    def submit(self, work: Callable[[], object]) -> None:
+        if self._thread is not None:
+            raise RuntimeError('a map rebuild is already in flight')
+
+        def run() -> None:
+            try:
+                self._outcome = (work(), None)
+            except BaseException as exc:  # handed to the waiting thread
+                self._outcome = (None, exc)
+        self._thread = threading.Thread(target=run, name='gft_odom-map', daemon=True)
+        self._thread.start()
+
+    def wait(self):
+        """The result of the work submitted last (re-raises its exception)."""
+        thread, self._thread = self._thread, None
+        thread.join()
+        (result, exc), self._outcome = self._outcome, (None, None)
+        if exc is not None:
+            raise exc
+        return result
+
+
 class LocalMap:
     """Sliding window of keyframes in the world frame, served as one open3d cloud."""
 
@@ -173,12 +226,18 @@ class LocalMap:
         self.viewpoints = np.zeros((0, 3))
         self._target: MapTarget | None = None
         self._previous_target: MapTarget | None = None
+        self._worker = _Worker()
 
     def __len__(self) -> int:
         return len(self.cloud.points)
 
     def clear(self) -> None:
-        """Drop every keyframe."""
+        """Drop every keyframe (and a rebuild in flight)."""
+        if self._worker.pending:
+            try:
+                self._worker.wait()
+            except Exception:  # noqa: BLE001 - what it built is dropped anyway
+                pass
         self._keyframes.clear()
         self._anchors.clear()
         self.cloud = o3d.geometry.PointCloud()
@@ -236,10 +295,24 @@ class LocalMap:
         R_rel = T_last[:3, :3].T @ T_world_sensor[:3, :3]
         return Rotation.from_matrix(R_rel).magnitude() >= self.keyframe_rotation_rad
 
+    @property
+    def rebuild_in_flight(self) -> bool:
+        """A background rebuild not adopted yet (the map served is the one before it)."""
+        return self._worker.pending
+
+    def adopt(self) -> float:
+        """Serve the background rebuild in flight, once it is done; the seconds waited."""
+        if not self._worker.pending:
+            return 0.0
+        t0 = time.perf_counter()
+        self._serve(self._worker.wait())
+        return time.perf_counter() - t0
+
     def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray,
-                     smoothness: np.ndarray | None = None) -> None:
+                     smoothness: np.ndarray | None = None, background: bool = False) -> None:
         """Store a keyframe (world-frame points, optional per-point smoothness in [0, 1])
-        and rebuild the served cloud."""
+        and rebuild the served cloud; `background`: on a thread, served after `adopt`."""
+        self.adopt()  # the window changes only once the rebuild before is served
         keep = voxel_downsample_indices(points_world, self.voxel_size_m,
                                         self._view_priority(points_world, T_world_sensor))
         if len(self._keyframes) >= self.max_keyframes:
@@ -253,7 +326,11 @@ class LocalMap:
                 self._anchor(self._keyframes.pop(0), T_world_sensor[:3, 3])
         self._keyframes.append((T_world_sensor.copy(), points_world[keep],
                                 None if smoothness is None else smoothness[keep]))
-        self._rebuild(T_world_sensor[:3, 3])
+        centre = T_world_sensor[:3, 3].copy()
+        if background:
+            self._worker.submit(lambda: self._rebuilt(centre, in_background=True))
+        else:
+            self._serve(self._rebuilt(centre))
 
     @property
     def n_anchors(self) -> int:
@@ -340,7 +417,10 @@ class LocalMap:
             centroids[one], views[one] = points[first[one]], viewpoints[first[one]]
         return centroids, views, smooth
 
-    def _rebuild(self, centre_xyz: np.ndarray) -> None:
+    def _rebuilt(self, centre_xyz: np.ndarray, in_background: bool = False) -> _Served:
+        """The map of the window and the anchors around `centre_xyz`. `in_background`: its
+        target too, with every normal estimated by scipy (what open3d's would be), so that
+        the thread leaves the interpreter to the next scan's match."""
         # The first point of a voxel wins: newest keyframe first keeps the freshest point,
         # oldest first the one seen first; 'nearest' the one seen from closest. Each part:
         # (points, smoothness or None, viewpoints, view priority or None).
@@ -380,16 +460,25 @@ class LocalMap:
             # Keep the nearest points: registration is best conditioned close to the sensor.
             index = index[np.argpartition(d2[index], self.max_points - 1)[:self.max_points]]
         merged = merged[index]
-        self.smoothness = None if smooth is None else smooth[index]
-        self.viewpoints = viewpoints[index]
-        cloud = to_cloud(merged)
+        served = _Served(to_cloud(merged), None if smooth is None else smooth[index],
+                         viewpoints[index])
         if merged.shape[0] >= 3:
             search = o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours)
-            if self.with_normals:
-                cloud.estimate_normals(search)
+            if self.with_normals and not in_background:
+                served.cloud.estimate_normals(search)
             if self.with_covariances:
-                cloud.estimate_covariances(search)
-        self.cloud = cloud
+                served.cloud.estimate_covariances(search)
+        if in_background:
+            target = MapTarget(merged, None, point_smoothness=served.smoothness,
+                               viewpoints=served.viewpoints,
+                               normal_neighbours=self.normal_neighbours)
+            target.estimate_missing_normals()
+            target.normals = target.estimated_normals
+            served = served._replace(target=target)
+        return served
+
+    def _serve(self, served: _Served) -> None:
+        self.cloud, self.smoothness, self.viewpoints = served[:3]
         if self._target is not None and self._target.normals is None:
             self._previous_target = self._target  # its estimated normals carry over
-        self._target = None
+        self._target = served.target

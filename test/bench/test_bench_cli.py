@@ -135,3 +135,27 @@ def test_targets_follow_the_numbers(tmp_path):
     assert summary['default']['n_scans'] == 6
     assert np.isclose(summary['default']['latency_median_ms'],
                       1e3 * np.median(bench.runs[0].replay.latency_s))
+
+
+def test_a_paced_run_hands_each_scan_over_at_its_stamp(tmp_path):
+    import time
+
+    from gft_odom.bench.runner import BenchSequence, run_method
+    from gft_odom.sim.writer import simulate_to_bag
+    result = simulate_to_bag(tmp_path / 'drive', 'row', 8, seed=3,
+                             config=SimConfig(azimuth_step_deg=0.8), topdown_png=False)
+    sequence = BenchSequence('row', 3, 8, result.bag_path, result.gt_csv_path)
+    config = GftOdomConfig()
+    unpaced = run_method('default+gft', sequence, config)
+    t0 = time.perf_counter()
+    paced = run_method('default+gft', sequence, config, paced=True)
+    stamps = paced.replay.sensor_trajectory.stamps_ns
+    # The last scan is not handed over before its stamp's offset from the first.
+    assert time.perf_counter() - t0 >= (stamps[-1] - stamps[0]) * 1e-9
+    assert paced.metrics['paced'] and not unpaced.metrics['paced']
+    # The latency is measured at the sensor's rate: no model of it on top, the same poses.
+    assert 'latency_at_rate_p95_ms' in unpaced.metrics
+    assert 'latency_at_rate_p95_ms' not in paced.metrics
+    assert paced.metrics['latency_median_ms'] > 0.0
+    np.testing.assert_array_equal(paced.replay.sensor_trajectory.poses,
+                                  unpaced.replay.sensor_trajectory.poses)

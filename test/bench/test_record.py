@@ -10,6 +10,7 @@ import pytest
 
 from gft_odom.bench import drives as drives_module
 from gft_odom.bench.drives import (
+    CONFIRM_DRIVES,
     EDGE_DRIVES,
     HELD_OUT_DRIVES,
     NEW_HELD_OUT_DRIVES,
@@ -74,17 +75,19 @@ def test_drive_sets_share_no_seed_and_the_record_offers_each():
     from pathlib import Path
 
     from helpers import load_script
-    sets = (TRAINING_DRIVES, HELD_OUT_DRIVES, NEW_HELD_OUT_DRIVES, EDGE_DRIVES)
+    sets = (TRAINING_DRIVES, HELD_OUT_DRIVES, NEW_HELD_OUT_DRIVES, EDGE_DRIVES, CONFIRM_DRIVES)
     seeds = [d.seed for drives in sets for d in drives]
     assert len(seeds) == len(set(seeds))
     assert {d.seed for d in NEW_HELD_OUT_DRIVES} == {211, 212, 213, 214}
     assert {d.route for d in NEW_HELD_OUT_DRIVES} == {'lawnmower', 'every_other_row', 'spiral',
                                                       'out_and_back'}
     assert {d.route for d in EDGE_DRIVES} == {'edge_lawnmower'}
-    assert all(d.distance_m == 280.0 for d in NEW_HELD_OUT_DRIVES + EDGE_DRIVES)
+    assert {d.route for d in CONFIRM_DRIVES} == {d.route for d in NEW_HELD_OUT_DRIVES}
+    assert all(d.distance_m == 280.0 for d in NEW_HELD_OUT_DRIVES + EDGE_DRIVES + CONFIRM_DRIVES)
     record = load_script(Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_record.py')
     assert record.DRIVE_SETS == {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
-                                 'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES}
+                                 'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
+                                 'confirm': CONFIRM_DRIVES}
 
 
 @pytest.mark.slow
@@ -157,6 +160,25 @@ def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, measure
     changed = with_values(GftOdomConfig(), {'registration.map_keyframes': 7})
     run_record([ours, peer], [sequence], base=changed, cache_dir=tmp_path / 'cache')
     assert sorted(calls) == ['kiss', 'ours', 'ours']
+
+
+def test_an_option_at_its_neutral_value_keeps_the_cached_results(tmp_path, measured_labels):
+    from gft_odom.bench import record as record_module
+    from gft_odom.config import with_values
+    calls = measured_labels
+    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
+    (section, name), neutral = next(iter(record_module.KEY_NEUTRAL_VALUES.items()))
+    assert getattr(getattr(GftOdomConfig(), section), name) == neutral
+    ours = Entry('ours', 'default+gft')
+    run_record([ours], [sequence], cache_dir=tmp_path / 'cache')
+    key = record_module._keyed_config(record_module.method_config(GftOdomConfig(),
+                                                                  'default+gft'))
+    assert name not in key[section]
+    run_record([ours], [sequence], cache_dir=tmp_path / 'cache')
+    assert calls == ['ours']  # the same key as before the option existed: read back
+    other = with_values(GftOdomConfig(), {f'{section}.{name}': 'background'})
+    run_record([ours], [sequence], base=other, cache_dir=tmp_path / 'cache')
+    assert calls == ['ours', 'ours']  # another value is another result
 
 
 def test_summary_shows_mean_and_end_point_error_and_fills_old_cached_pairs(tmp_path,

@@ -288,3 +288,102 @@ def test_on_demand_normals_need_a_numpy_solver():
         RegistrationConfig(solver='open3d', map_normals='on_demand').validate()
     with pytest.raises(ConfigError, match='map_normals'):
         RegistrationConfig(map_normals='sometimes').validate()
+
+
+def _drive_box(config: RegistrationConfig, n_scans: int = 8) -> np.ndarray:
+    """The poses of a short turn-and-drive through the box scene."""
+    points = box_scene(seed=9)
+    registration = ScanRegistration(config)
+    poses = []
+    for i in range(n_scans):
+        T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
+                           [0.12 * i, 0.02 * i, 0.0])
+        poses.append(registration.register(
+            (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
+            i * 100_000_000, defer_map_update=True).T_world_sensor)
+        registration.update_map()
+    return np.array(poses)
+
+
+def test_background_rebuild_normals_are_the_inline_ones():
+    from gft_odom.core.local_map import LocalMap
+    scene = box_scene(seed=8)
+    local_map = LocalMap(0.1, 100.0, 100_000, 2, 1.0, 0.2, 15)
+    local_map.add_keyframe(scene[:4000], np.eye(4))
+    inline = local_map.cloud
+    served = local_map.target()
+    T = np.eye(4)
+    T[0, 3] = 1.5
+    local_map.add_keyframe(scene[4000:], T, background=True)
+    # Until adopted, the map before the keyframe is what is served.
+    assert local_map.rebuild_in_flight and local_map.cloud is inline
+    assert local_map.target() is served
+    assert local_map.adopt() >= 0.0 and not local_map.rebuild_in_flight
+    background = local_map.target()
+    assert background.normals is not None and local_map.cloud is not inline
+    reference = LocalMap(0.1, 100.0, 100_000, 2, 1.0, 0.2, 15)
+    reference.add_keyframe(scene[:4000], np.eye(4))
+    reference.add_keyframe(scene[4000:], T)
+    np.testing.assert_array_equal(background.points, reference.points_xyz)
+    dot = np.einsum('ij,ij->i', background.normals, np.asarray(reference.cloud.normals))
+    np.testing.assert_allclose(np.abs(dot), 1.0, atol=1e-6)
+
+
+def test_background_map_update_serves_each_rebuild_from_the_second_scan_after():
+    config = RegistrationConfig(map_update='background', keyframe_distance_m=0.1)
+    points = box_scene(seed=9)
+    registration = ScanRegistration(config)
+    served = []
+    for i in range(4):
+        T = make_transform(np.eye(3), [0.15 * i, 0.0, 0.0])
+        registration.register((points - T[:3, 3]), i * 100_000_000, defer_map_update=True)
+        served.append(registration.local_map.cloud)
+        registration.update_map()
+    # Scan 0's keyframe is built at once; scan 1's rebuild is served from scan 3 on (scan
+    # 2's keyframe waits for it first), so scan 2 is matched against scan 0's map.
+    assert len(served[0].points) == 0 and len(served[1].points) > 0
+    assert served[2] is served[1] and served[3] is not served[2]
+
+
+def test_background_map_update_does_not_depend_on_the_threads_speed(monkeypatch):
+    from gft_odom.core import local_map as local_map_module
+    config = RegistrationConfig(map_update='background', keyframe_distance_m=0.1)
+    threaded = _drive_box(config)
+    slow_submit = local_map_module._Worker.submit
+
+    def late(self, work):  # the rebuild finishes only when waited for, much later
+        import time
+
+        def slow():
+            time.sleep(0.05)
+            return work()
+        slow_submit(self, slow)
+    monkeypatch.setattr(local_map_module._Worker, 'submit', late)
+    np.testing.assert_array_equal(_drive_box(config), threaded)
+    # And it tracks the drive as the inline update does.
+    inline = _drive_box(RegistrationConfig(keyframe_distance_m=0.1))
+    np.testing.assert_allclose(threaded[:, :3, 3], inline[:, :3, 3], atol=0.01)
+
+
+def test_a_failed_background_rebuild_raises_when_adopted_and_the_old_map_stays():
+    from gft_odom.core.local_map import LocalMap
+    scene = box_scene(seed=8)
+    local_map = LocalMap(0.1, 100.0, 100_000, 2, 1.0, 0.2, 15)
+    local_map.add_keyframe(scene[:4000], np.eye(4))
+    before = local_map.cloud
+
+    def broken(*args, **kwargs):
+        raise MemoryError('no room for the map')
+    local_map._rebuilt = broken
+    local_map.add_keyframe(scene[4000:], np.eye(4), background=True)
+    with pytest.raises(MemoryError):
+        local_map.adopt()
+    assert local_map.cloud is before and not local_map.rebuild_in_flight
+
+
+@pytest.mark.parametrize('change', [{'map_normals': 'on_demand'}, {'solver': 'open3d'},
+                                    {'solver': 'gauss_newton', 'residual_model': 'planarity'},
+                                    {'map_update': 'sometimes'}])
+def test_background_map_update_needs_what_its_thread_can_compute(change):
+    with pytest.raises(ConfigError, match='map_update'):
+        RegistrationConfig(**{'map_update': 'background', **change}).validate()
