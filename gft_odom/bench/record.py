@@ -323,8 +323,16 @@ def plot_error_over_distance(record: RecordRun, path: Path) -> Path:
         ax.grid(alpha=0.3, which='both')
     for k in range(n, rows * cols):
         axes[k // cols][k % cols].axis('off')
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc='lower center', ncol=min(len(labels), 5), fontsize=8)
+    # Every entry drawn on any panel (one without results on the first drive too; none
+    # at all when nothing was measured, as --cached-only may find).
+    legend: dict[str, object] = {}
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    labels = list(legend)
+    if labels:
+        fig.legend(list(legend.values()), labels, loc='lower center',
+                   ncol=min(len(labels), 5), fontsize=8)
     fig.tight_layout(rect=(0, 0.06 + 0.02 * (len(labels) > 5), 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -149,6 +149,10 @@ def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, measur
     assert calls == ['a']  # measured once, then read back; b never measured
     assert set(record.metrics) == {('a', 'spiral-1')}
     assert record_module.summarize_record(record)['b']['drives'] == 0
+    # Nothing measured at all is still a record (its figure without a legend), not a crash.
+    nothing = run_record([b], [sequence], cache_dir=tmp_path / 'cache', cached_only=True)
+    paths = record_module.write_record(nothing, tmp_path / 'out', {}, stem='empty')
+    assert paths['figure'].is_file() and not nothing.metrics
 
 
 def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, measured_labels):
