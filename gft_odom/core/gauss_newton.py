@@ -67,11 +67,6 @@ class MapTarget:
         self.n_normals_estimated = 0  # for the tests and the benchmarks
         self.n_normals_inherited = 0
 
-    @property
-    def estimated_normals(self) -> np.ndarray:
-        """(n, 3) the normals estimated so far (zero rows where none is yet)."""
-        return self._estimated
-
     def normals_at(self, index: np.ndarray) -> np.ndarray:
         """The unit normals of the map points `index`.
 

@@ -18,10 +18,10 @@ other face is a different cloud, a metre or two away, that pulls a scan from the
 sideways. Smooth points look the same from every side and are served from anywhere.
 
 Background rebuilds (`add_keyframe(..., background=True)`): the window changes at once, the
-merge and every normal are computed on a thread of their own (scipy and numpy, which let the
-interpreter run the next scan's match meanwhile; open3d's normals would hold it), and the
-map served stays the previous one until `adopt`. The caller chooses when it adopts, so the
-poses do not depend on how fast the thread was.
+merge and every normal are computed on a thread of their own (numpy and open3d's tensor
+normals, which let the interpreter run the next scan's match meanwhile; the legacy
+`estimate_normals` would hold it), and the map served stays the previous one until `adopt`.
+The caller chooses when it adopts, so the poses do not depend on how fast the thread was.
 """
 
 from __future__ import annotations
@@ -129,6 +129,18 @@ def voxel_means(points_xyz: np.ndarray, voxel_size_m: float, *values: np.ndarray
 def to_cloud(points_xyz: np.ndarray) -> o3d.geometry.PointCloud:
     """numpy (N, 3) -> open3d cloud."""
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points_xyz)))
+
+
+def _normals_releasing_the_interpreter(points_xyz: np.ndarray, neighbours: int
+                                       ) -> np.ndarray | None:
+    """(n, 3) kNN PCA normals, the ones `PointCloud.estimate_normals` gives (to the sign),
+    from open3d's tensor API: it releases the GIL, the legacy call holds it throughout.
+    None for fewer than 3 points (as a cloud that small gets none: estimated on demand)."""
+    if points_xyz.shape[0] < 3:
+        return None
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points_xyz)))
+    cloud.estimate_normals(max_nn=neighbours)
+    return cloud.point.normals.numpy().astype(float, copy=False)
 
 
 class _Served(NamedTuple):
@@ -419,8 +431,8 @@ class LocalMap:
 
     def _rebuilt(self, centre_xyz: np.ndarray, in_background: bool = False) -> _Served:
         """The map of the window and the anchors around `centre_xyz`. `in_background`: its
-        target too, with every normal estimated by scipy (what open3d's would be), so that
-        the thread leaves the interpreter to the next scan's match."""
+        target too, with every normal, computed so that the thread leaves the interpreter to
+        the next scan's match."""
         # The first point of a voxel wins: newest keyframe first keeps the freshest point,
         # oldest first the one seen first; 'nearest' the one seen from closest. Each part:
         # (points, smoothness or None, viewpoints, view priority or None).
@@ -469,12 +481,10 @@ class LocalMap:
             if self.with_covariances:
                 served.cloud.estimate_covariances(search)
         if in_background:
-            target = MapTarget(merged, None, point_smoothness=served.smoothness,
-                               viewpoints=served.viewpoints,
-                               normal_neighbours=self.normal_neighbours)
-            target.estimate_missing_normals()
-            target.normals = target.estimated_normals
-            served = served._replace(target=target)
+            served = served._replace(target=MapTarget(
+                merged, _normals_releasing_the_interpreter(merged, self.normal_neighbours),
+                point_smoothness=served.smoothness, viewpoints=served.viewpoints,
+                normal_neighbours=self.normal_neighbours))
         return served
 
     def _serve(self, served: _Served) -> None:

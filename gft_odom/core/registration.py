@@ -252,7 +252,7 @@ class RegistrationConfig:
     # 'background' (on a thread, while the next scan is matched against the map before it;
     # the scan after that adopts it). A keyframe's rebuild (~150 ms at the p95) no longer
     # holds up the next scan, and the poses do not depend on the thread's speed. Needs
-    # solver 'map_tree' or 'gauss_newton' and map_normals 'rebuild' (computed by scipy on
+    # solver 'map_tree' or 'gauss_newton' and map_normals 'rebuild' (open3d's, computed on
     # the thread), no planarity model.
     map_update: str = 'inline'
     # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
