@@ -62,6 +62,8 @@ ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
 # through its Python API and through evalio.
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
+    Entry('gft_odom, map update in the background', 'default+gft',
+          (('registration.map_update', 'background'),)),
     Entry('gft_odom + deskew', 'default+gft', (('registration.deskew', True),)),
     Entry('gft_odom with smooth anchors only (session 13 default)', 'default+gft', NO_VIEW_GATE),
     Entry('gft_odom without turned guesses (session 6 default)', 'default+gft',

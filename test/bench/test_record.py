@@ -172,14 +172,13 @@ def test_an_option_at_its_neutral_value_keeps_the_cached_results(tmp_path, measu
     calls = measured_labels
     sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
     (section, name), neutral = next(iter(record_module.KEY_NEUTRAL_VALUES.items()))
-    assert getattr(getattr(GftOdomConfig(), section), name) == neutral
+    at_neutral = with_values(GftOdomConfig(), {f'{section}.{name}': neutral})
     ours = Entry('ours', 'default+gft')
-    run_record([ours], [sequence], cache_dir=tmp_path / 'cache')
-    key = record_module._keyed_config(record_module.method_config(GftOdomConfig(),
-                                                                  'default+gft'))
-    assert name not in key[section]
-    run_record([ours], [sequence], cache_dir=tmp_path / 'cache')
-    assert calls == ['ours']  # the same key as before the option existed: read back
+    run_record([ours], [sequence], base=at_neutral, cache_dir=tmp_path / 'cache')
+    key = record_module._keyed_config(record_module.method_config(at_neutral, 'default+gft'))
+    assert name not in key[section]  # the key a result had before the option existed
+    run_record([ours], [sequence], base=at_neutral, cache_dir=tmp_path / 'cache')
+    assert calls == ['ours']  # read back
     other = with_values(GftOdomConfig(), {f'{section}.{name}': 'background'})
     run_record([ours], [sequence], base=other, cache_dir=tmp_path / 'cache')
     assert calls == ['ours', 'ours']  # another value is another result

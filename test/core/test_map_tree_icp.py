@@ -383,7 +383,14 @@ def test_a_failed_background_rebuild_raises_when_adopted_and_the_old_map_stays()
 
 @pytest.mark.parametrize('change', [{'map_normals': 'on_demand'}, {'solver': 'open3d'},
                                     {'solver': 'gauss_newton', 'residual_model': 'planarity'},
-                                    {'map_update': 'sometimes'}])
+                                    {'mode': 'paper'}, {'map_update': 'sometimes'}])
 def test_background_map_update_needs_what_its_thread_can_compute(change):
     with pytest.raises(ConfigError, match='map_update'):
         RegistrationConfig(**{'map_update': 'background', **change}).validate()
+    # 'auto' (the default) is the inline update there, and background where it can be.
+    auto = RegistrationConfig(**{**change, 'map_update': 'auto'})
+    if change.get('map_update') is None:
+        auto.validate()
+        assert auto.resolved_map_update == 'inline'
+    assert RegistrationConfig(map_update='auto').resolved_map_update == 'background'
+    assert RegistrationConfig().resolved_map_update == 'inline'
