@@ -255,8 +255,10 @@ class RegistrationConfig:
     # 'background' needs solver 'map_tree' or 'gauss_newton', map_normals 'rebuild',
     # point-to-plane estimation and no 'planarity' model; 'auto' is 'background' where
     # those hold and 'inline' elsewhere. Not the default (session 16): 2 % ATE on the
-    # training drives, and a platform beyond the speed bound is no longer told within 16
-    # scans (test_bounds_watch): its matches against the older map scatter.
+    # training drives; where a scan's work nears the period the thread's share of the cores
+    # lengthens the queue (lawnmower-111, paced p95 1.2 s against 0.33 s inline); and a
+    # platform beyond the speed bound is no longer told within 16 scans (test_bounds_watch):
+    # its matches against the older map scatter.
     map_update: str = 'inline'
     # Gauss-Newton only (core/residuals.py): 'plane' (every pair point-to-plane, weight 1),
     # 'frequency' (the scan point's graph frequency decides: smooth -> plane, rough -> the
