@@ -48,6 +48,9 @@ NO_TURN_GUESSES = (('registration.recovery_yaw_guesses', 0),)
 # Session 14 made rough anchors served from their own side the default; the rows before had
 # smooth anchors only.
 NO_VIEW_GATE = (('registration.map_anchor_rough_view_deg', 0.0),)
+# Session 17 made a share (0.25) of the rough anchors served from any side the default; the
+# rows with view-gated rough anchors before had none.
+NO_ANY_SIDE = (('registration.map_anchor_rough_any_side_share', 0.0),)
 PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_points', 80000),
                      ('registration.map_keyframe_eviction', 'oldest'),
                      ('registration.keyframe_rotation_rad', 0.2),
@@ -65,6 +68,8 @@ ENTRIES = (
     Entry('gft_odom, map update in the background', 'default+gft',
           (('registration.map_update', 'background'),)),
     Entry('gft_odom + deskew', 'default+gft', (('registration.deskew', True),)),
+    Entry('gft_odom without the any-side share (session 16 default)', 'default+gft',
+          NO_ANY_SIDE),
     Entry('gft_odom with smooth anchors only (session 13 default)', 'default+gft', NO_VIEW_GATE),
     Entry('gft_odom without turned guesses (session 6 default)', 'default+gft',
           NO_TURN_GUESSES + NO_VIEW_GATE),
@@ -115,7 +120,7 @@ ABLATION_ENTRIES += (
 # Session 14: rough anchors served only from the side they were seen from (session 9's
 # map_anchor_rough_view_deg, 3-4 % better than the default on the training drives), with the
 # frequency, shuffled, and without it (every anchor rough, so every one view-gated).
-_VIEW = (('registration.map_anchor_rough_view_deg', 60.0),)
+_VIEW = (('registration.map_anchor_rough_view_deg', 60.0),) + NO_ANY_SIDE
 ABLATION_ENTRIES += (
     Entry('view-gated rough anchors (frequency)', 'default+gft', _VIEW),
     Entry('view-gated rough anchors, shuffled frequency', 'default+gft',
@@ -130,7 +135,7 @@ ABLATION_ENTRIES += tuple(
 
 # Session 16: a share of the rough anchors served from any side (session 15: 2 % on the
 # training drives, 7 % on the held-out ones), its frequency ablation, on drives never seen.
-_ANY_SIDE = _VIEW + (('registration.map_anchor_rough_any_side_share', 0.25),)
+_ANY_SIDE = _VIEW[:1] + (('registration.map_anchor_rough_any_side_share', 0.25),)
 ABLATION_ENTRIES += (
     Entry('any-side share 0.25 (frequency)', 'default+gft', _ANY_SIDE),
     Entry('any-side share 0.25, shuffled frequency', 'default+gft',
@@ -204,6 +209,12 @@ STUDY_ENTRIES = (
     # against the map before it (the at-rate p95: the rebuild no longer holds up that scan).
     Entry('map update in the background', 'default+gft',
           (('registration.map_update', 'background'),)),
+    # Session 17: the frequency choosing which rough anchors are served from any side (a
+    # lower smoothness threshold, no random share) against the random share of the default.
+    Entry('anchor smoothness 0.6, no any-side share', 'default+gft',
+          (('registration.map_anchor_smoothness', 0.6),) + NO_ANY_SIDE),
+    Entry('anchor smoothness 0.5, no any-side share', 'default+gft',
+          (('registration.map_anchor_smoothness', 0.5),) + NO_ANY_SIDE),
 )
 
 

@@ -170,8 +170,10 @@ class RegistrationConfig:
     map_anchor_rough_view_deg: float = 60.0
     # This share of the rough anchors (drawn by voxel) is served from any side as well. The
     # shuffled control, which serves a random share from any side, beat the frequency on the
-    # drives that meet rows again from the other side (session 15). 0: none.
-    map_anchor_rough_any_side_share: float = 0.0
+    # drives that meet rows again from the other side (session 15). Mean ATE with 0.25
+    # against 0: training -2 %, held-out -7 % (session 15), drives 231-234 never used for a
+    # choice -3 % (session 16); as good without frequencies (docs/registration.md). 0: none.
+    map_anchor_rough_any_side_share: float = 0.25
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
