@@ -201,3 +201,21 @@ def test_summary_shows_mean_and_end_point_error_and_fills_old_cached_pairs(tmp_p
     header, _, row = table.splitlines()
     assert 'mean error [m] | end-point error [m]' in header
     assert '| 0.500 | n/a | 1.000 |' in row
+
+
+def test_rows_named_after_an_old_default_keep_it_when_the_default_moves():
+    """A row labelled "session 16 default" or "view-gated" must not follow a new default."""
+    from pathlib import Path
+
+    from helpers import load_script
+    record = load_script(Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_record.py')
+    base = GftOdomConfig()
+    share = {e.label: e.config(base).registration.map_anchor_rough_any_side_share
+             for e in record.ENTRIES + record.ABLATION_ENTRIES}
+    assert base.registration.map_anchor_rough_any_side_share == 0.25
+    assert share['gft_odom'] == 0.25
+    assert share['gft_odom without the any-side share (session 16 default)'] == 0.0
+    view_gated = [label for label in share if label.startswith('view-gated rough anchors')]
+    assert view_gated and all(share[label] == 0.0 for label in view_gated)
+    any_side = [label for label in share if label.startswith('any-side share 0.25')]
+    assert len(any_side) == 3 and all(share[label] == 0.25 for label in any_side)
