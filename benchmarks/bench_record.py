@@ -120,7 +120,8 @@ ABLATION_ENTRIES += (
 # Session 14: rough anchors served only from the side they were seen from (session 9's
 # map_anchor_rough_view_deg, 3-4 % better than the default on the training drives), with the
 # frequency, shuffled, and without it (every anchor rough, so every one view-gated).
-_VIEW = (('registration.map_anchor_rough_view_deg', 60.0),) + NO_ANY_SIDE
+_VIEW_GATE = (('registration.map_anchor_rough_view_deg', 60.0),)
+_VIEW = _VIEW_GATE + NO_ANY_SIDE
 ABLATION_ENTRIES += (
     Entry('view-gated rough anchors (frequency)', 'default+gft', _VIEW),
     Entry('view-gated rough anchors, shuffled frequency', 'default+gft',
@@ -135,7 +136,7 @@ ABLATION_ENTRIES += tuple(
 
 # Session 16: a share of the rough anchors served from any side (session 15: 2 % on the
 # training drives, 7 % on the held-out ones), its frequency ablation, on drives never seen.
-_ANY_SIDE = _VIEW[:1] + (('registration.map_anchor_rough_any_side_share', 0.25),)
+_ANY_SIDE = _VIEW_GATE + (('registration.map_anchor_rough_any_side_share', 0.25),)
 ABLATION_ENTRIES += (
     Entry('any-side share 0.25 (frequency)', 'default+gft', _ANY_SIDE),
     Entry('any-side share 0.25, shuffled frequency', 'default+gft',
