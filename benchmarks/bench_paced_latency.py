@@ -31,15 +31,16 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.io.atomic import write_text_atomic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_record import DRIVE_SETS, NO_ANY_SIDE, RESULTS  # noqa: E402
+from bench_record import DRIVE_SETS, NO_ANY_SIDE, NO_DESKEW, RESULTS  # noqa: E402
 
 ENTRIES = (
     Entry('gft_odom, map update inline', 'default+gft',
           (('registration.map_update', 'inline'),)),
     Entry('gft_odom, map update in the background', 'default+gft',
           (('registration.map_update', 'background'),)),
+    Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
     Entry('gft_odom without the any-side share (session 16 default)', 'default+gft',
-          NO_ANY_SIDE),
+          NO_DESKEW + NO_ANY_SIDE),
     Entry('kiss-icp', 'kiss-icp'),
 )
 FIGURES = ('latency_median_ms', 'latency_p95_ms', 'ate_rmse_m', 'fallbacks')

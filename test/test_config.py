@@ -40,7 +40,7 @@ MODE_OVERLAYS = {
                             'spectral.method': 'signal', 'spectral.graph': 'slice',
                             'registration.mode': 'paper'},
     'default_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (1,)},
-    'deskew.yaml': {'registration.deskew': True},
+    'no_deskew.yaml': {'registration.deskew': False},
 }
 
 

@@ -41,7 +41,8 @@ RECORD_LENGTHS_M = (RPE_SHORT_M,) + KITTI_LENGTHS_M
 # Config fields added after results were cached, at the value that does what the code did
 # before them (the same poses): left out of a result's cache key at that value, so adding an
 # option does not throw away every cached run of ours.
-KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline'}
+KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
+                      ('registration', 'rough_kernel_scale_m'): 0.0}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

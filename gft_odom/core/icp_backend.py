@@ -97,6 +97,16 @@ class IcpBackend:
         self.source_smoothness = source_smoothness
         self.point_smoothness = point_smoothness
 
+    def _point_kernel_scale_m(self) -> np.ndarray | None:
+        """Each scan point's kernel scale, from robust_kernel_scale_m where it is smooth to
+        rough_kernel_scale_m where it is rough (None: one scale for all; so without
+        frequencies)."""
+        rough_m = self.config.rough_kernel_scale_m
+        if rough_m <= 0.0 or self.point_smoothness is None:
+            return None
+        s = np.clip(np.nan_to_num(self.point_smoothness, nan=0.0), 0.0, 1.0)
+        return rough_m + (self.config.robust_kernel_scale_m - rough_m) * s
+
     @property
     def solves_on_map_target(self) -> bool:
         """A numpy solver ('gauss_newton' or 'map_tree') matches against the map's
@@ -127,7 +137,8 @@ class IcpBackend:
                                         else None)
         if self.map_tree is not None and target is self.local_map.cloud:
             return self.map_tree.register(np.asarray(source.points), self.local_map.target(),
-                                          init, distance_m, criteria.max_iteration)
+                                          init, distance_m, criteria.max_iteration,
+                                          self._point_kernel_scale_m())
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(
                 self.config.gicp_epsilon, self.kernel)

@@ -72,13 +72,17 @@ class MapTreeICP:
         self.workers = workers
         # Past steps Anderson acceleration combines (0: plain ICP, open3d's iterates).
         self.anderson_memory = anderson_memory
+        self._point_scale_m: np.ndarray | None = None  # of the current call's scan points
 
     def register(self, source_xyz: np.ndarray, target: MapTarget, init: np.ndarray,
-                 max_distance_m: float, max_iterations: int | None = None) -> IcpResult:
-        """Align `source_xyz` (sensor frame) to `target` from `init` (T_world_sensor).
+                 max_distance_m: float, max_iterations: int | None = None,
+                 point_scale_m: np.ndarray | None = None) -> IcpResult:
+        """Align `source_xyz` (sensor frame) to `target` from `init` (T_world_sensor);
+        `point_scale_m` (n,): each scan point's own kernel scale (None: `kernel_scale_m`).
 
         The result's information is None: `icp_information` computes it from the pairs, as
         for open3d's result."""
+        self._point_scale_m = point_scale_m
         T = np.array(init, dtype=float)
         iterations = self.max_iterations if max_iterations is None else max_iterations
         world = source_xyz @ T[:3, :3].T + T[:3, 3]
@@ -123,9 +127,15 @@ class MapTreeICP:
         pair the loss of the correspondence distance (so losing pairs is not a gain)."""
         _, r = _plane_residuals(world, target, pairs)
         unpaired = world.shape[0] - pairs.shape[0]
-        return float(np.sum(kernel_loss(self.kernel, np.abs(r), self.kernel_scale_m))
+        return float(np.sum(kernel_loss(self.kernel, np.abs(r), self._scale(pairs)))
                      + unpaired * kernel_loss(self.kernel, np.array([max_distance_m]),
                                               self.kernel_scale_m)[0])
+
+    def _scale(self, pairs: np.ndarray) -> float | np.ndarray:
+        """The kernel scale of each pair (one for all when no point has its own)."""
+        if self._point_scale_m is None:
+            return self.kernel_scale_m
+        return self._point_scale_m[pairs[:, 0]]
 
     @staticmethod
     def _correspond(world: np.ndarray, nearest: 'ExactNearest'):
@@ -150,7 +160,7 @@ class MapTreeICP:
         J[:, 1] = p[:, 2] * normals[:, 0] - p[:, 0] * normals[:, 2]
         J[:, 2] = p[:, 0] * normals[:, 1] - p[:, 1] * normals[:, 0]
         J[:, 3:] = normals
-        w = kernel_weights(self.kernel, np.abs(r), self.kernel_scale_m)
+        w = kernel_weights(self.kernel, np.abs(r), self._scale(pairs))
         Jw = J * w[:, None]
         try:
             x = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))

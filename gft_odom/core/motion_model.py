@@ -29,6 +29,11 @@ if TYPE_CHECKING:
     from gft_odom.core.registration import RegistrationConfig
 
 log = logging.getLogger(__name__)
+# The jump bounds hold per scan period and scale with the time the prediction covers: a
+# correction to the constant-velocity guess comes from a change of velocity, which grows with
+# that time. Below this share of a period they stop shrinking (ICP's own noise, mm and mrad,
+# is far under a tenth of the bounds).
+MIN_JUMP_ALLOWANCE = 0.1
 
 
 def scale_delta(T: np.ndarray, factor: float) -> np.ndarray:
@@ -81,8 +86,10 @@ class MotionModel:
         self.trusted_stamp_ns: int | None = None
         # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
         self.velocity = np.zeros(6)
-        # The velocities of the last trusted scans, whose mean deskew assumes.
-        self.twists: deque[np.ndarray] = deque(maxlen=self.config.deskew_velocity_window)
+        # The velocities of the last trusted scans and the time each spans: deskew assumes
+        # their mean weighted by it (a scan 30 ms after the last counts a third).
+        self.twists: deque[tuple[np.ndarray, float]] = deque(
+            maxlen=self.config.deskew_velocity_window)
         # Re-acquiring after a gap or a run of fallbacks; the velocity before the loss.
         self.recovering = False
         self.velocity_before_loss = np.zeros(6)
@@ -149,11 +156,13 @@ class MotionModel:
                 and angle_rad <= cfg.max_yaw_rate_rps * slack)
 
     def jumped(self, T_pred: np.ndarray, T_est: np.ndarray, stamp_ns: int) -> bool:
-        """Farther from the prediction than the jump bounds, which grow with the time the
-        prediction has been extrapolated over (since the last trusted pose)."""
+        """Farther from the prediction than the jump bounds, scaled by the time the
+        prediction has been extrapolated over (since the last trusted pose) in scan periods:
+        a copy of a scan 30 ms after it may stray a third as far as a scan a period later."""
         cfg = self.config
         jump_m, jump_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
-        allowance = max(1.0, self.since_trusted(stamp_ns, T_est)[1] / cfg.scan_period_s)
+        allowance = max(MIN_JUMP_ALLOWANCE,
+                        self.since_trusted(stamp_ns, T_est)[1] / cfg.scan_period_s)
         if (jump_m > cfg.max_translation_jump_m * allowance
                 or jump_rad > cfg.max_rotation_jump_rad * allowance):
             log.debug('ICP moved %.3f m / %.3f rad away from the prediction', jump_m, jump_rad)
@@ -239,11 +248,12 @@ class MotionModel:
         velocity to the motion since the previous trusted pose, a re-acquisition
         (`recovered`) to `recovered_velocity` (its winning guess, or a retry's motion)."""
         velocity = self.implied_velocity(stamp_ns, T_world_new) if status == 'ok' else None
+        span_s = self.since_trusted(stamp_ns, T_world_new)[1]
         self.T_world_trusted = T_world_new.copy()
         self.trusted_stamp_ns = int(stamp_ns)
         if velocity is not None:
             self.velocity = velocity
-            self.twists.append(self.velocity)
+            self.twists.append((self.velocity, span_s))
         elif status == 'recovered':
             self.velocity = recovered_velocity
         self.recovering = False
@@ -256,15 +266,22 @@ class MotionModel:
     # ------------------------------------------------------------ deskew
 
     def deskew_motion(self, dt_s: float, latest: np.ndarray | None = None) -> np.ndarray:
-        """The motion over `dt_s` that deskew assumes: the mean twist of the recent trusted
-        scans (with `latest`, this scan's own estimate, as the newest), planar by default."""
+        """The motion over `dt_s` that deskew assumes: the twist of the recent trusted scans
+        (with `latest`, this scan's own estimate, as the newest), their mean weighted by the
+        share of a scan period each spans (at most 1), planar by default."""
         window = self.config.deskew_velocity_window
         twists = list(self.twists)
         if latest is not None and dt_s > 0.0:
-            twists = twists[len(twists) - window + 1:] + [twist_of(latest, dt_s)]
+            twists = twists[len(twists) - window + 1:] + [(twist_of(latest, dt_s), dt_s)]
         if not twists or not dt_s > 0.0:
             return np.eye(4)
-        motion = delta_of_twist(np.mean(twists[-window:], axis=0), dt_s)
+        velocities = np.array([twist for twist, _ in twists[-window:]])
+        spans_s = np.array([span for _, span in twists[-window:]])
+        # A span of a scan period or more weighs 1 (so steady scans give the plain mean); a
+        # shorter one its share of a period: a velocity over 30 ms is ICP noise / 0.03 s.
+        weights = np.clip(spans_s / self.config.scan_period_s, MIN_JUMP_ALLOWANCE, 1.0)
+        mean = np.sum(velocities * weights[:, None], axis=0) / np.sum(weights)
+        motion = delta_of_twist(mean, dt_s)
         return planar_delta(motion) if self.config.deskew_planar else motion
 
     def scan_motion(self, stamp_ns: int, T_world_new: np.ndarray, dt_s: float) -> np.ndarray:

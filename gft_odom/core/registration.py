@@ -120,6 +120,10 @@ class RegistrationConfig:
     robust_kernel: str = 'tukey'
     # Tukey c: residuals beyond it get zero weight; ~4 sigma of canopy sway + range noise.
     robust_kernel_scale_m: float = 0.3
+    # Solver 'map_tree': the Tukey scale of a rough scan point (smoothness 0: canopy), blended
+    # linearly to robust_kernel_scale_m at smoothness 1 (ground, trunks). 0: every pair
+    # robust_kernel_scale_m (also without frequencies). Session 18 study, docs/registration.md.
+    rough_kernel_scale_m: float = 0.0
     # GICP covariance regulariser (open3d epsilon).
     gicp_epsilon: float = 1e-3
     # Local map (default mode): voxel, radius around the newest keyframe, hard point cap.
@@ -187,7 +191,10 @@ class RegistrationConfig:
     # min_fitness, and would have entered the map at a keyframe.
     min_relative_fitness: float = 0.7
     # Largest correction to the constant-velocity prediction per scan period: a Jackal
-    # (2 m/s, ~2 rad/s top speed) cannot change its velocity by more within 0.1 s.
+    # (2 m/s, ~2 rad/s top speed) cannot change its velocity by more within 0.1 s. Scaled
+    # by the time the prediction covers: a scan 30 ms after the last may stray 0.3 x as far
+    # (session 18: with deskew, mirrored copies 30 ms after a row scan were trusted 0.2 rad
+    # off; docs/robustness.md).
     max_translation_jump_m: float = 0.5
     max_rotation_jump_rad: float = 0.25
     # Physical bounds: a Clearpath Jackal tops out at 2.0 m/s. The rotation bound applies to
@@ -297,17 +304,19 @@ class RegistrationConfig:
     # letting the estimate slide. 0: no prior.
     motion_prior_weight: float = 0.0
     # Motion compensation (default mode only). An undeskewed sweep registers to about its
-    # mid-sweep pose, ~50 ms after the stamp it is published with; the evaluation of before
-    # (GPS paired by nearest stamp, 37 ms after the scan) hid that and deskew looked mixed.
-    # With the GPS interpolated at the stamps, deskew took the training drives
-    # lawnmower-111 / every_other_row-113 / every_other_row-118 from 0.080 / 0.082 / 0.124 m
-    # to 0.056 / 0.031 / 0.158 m ATE, and let 5 of 9 mirrored copies of a row scan be trusted
-    # (the fault suite allows 4), so it stays off by default (docs/registration.md).
-    deskew: bool = False
+    # mid-sweep pose, ~50 ms after the stamp it is published with. Session 5 found it mixed
+    # (better on two of three training drives, and 5 of 9 mirrored copies of a row scan
+    # trusted). Session 18, on the anchored map: training mean ATE 0.085 -> 0.055 m (window 2),
+    # every drive better; the mirrored copies are refused by jump bounds scaled to the 30 ms
+    # they come after (docs/registration.md). config/no_deskew.yaml turns it off.
+    deskew: bool = True
     # Deskew with forward motion and yaw rate only (ground robot); false: full 6-DoF twist.
     deskew_planar: bool = True
-    # Deskew velocity = mean twist of the last this many trusted scans (ICP noise averages out).
-    deskew_velocity_window: int = 5
+    # Deskew velocity = mean twist of the last this many trusted scans (ICP noise averages out,
+    # but a mean over many lags where the yaw rate jumps). With 5, held-out lawnmower-205 lost
+    # 0.14 rad of heading at the onset of a 1 rad/s turn (ATE 3.8 m); training drives, mean
+    # ATE: window 1 0.057 m, 2 0.055 m, 5 0.057 m (session 18, docs/registration.md).
+    deskew_velocity_window: int = 2
     scan_period_s: float = SCAN_PERIOD_S
     # Azimuth-derived times only: ROS velodyne drivers stamp with the last packet by default
     # (timestamp_first_packet: false); set true when the bag's header.stamp is the sweep end.
@@ -363,23 +372,21 @@ class RegistrationConfig:
         if self.residual_model != 'plane' and self.solver != 'gauss_newton':
             raise ConfigError(f"residual_model {self.residual_model!r} needs solver "
                               f"'gauss_newton' (open3d's ICP has one residual type)")
-        if not (math.isfinite(self.motion_prior_weight) and self.motion_prior_weight >= 0.0):
-            raise ConfigError(f'motion_prior_weight must be a finite number >= 0, '
-                              f'got {self.motion_prior_weight}')
-        if not (math.isfinite(self.frequency_affinity_m) and self.frequency_affinity_m >= 0.0):
-            raise ConfigError(f'frequency_affinity_m must be a finite number >= 0, '
-                              f'got {self.frequency_affinity_m}')
         if self.anderson_memory and self.solver != 'map_tree':
             raise ConfigError("anderson_memory needs solver 'map_tree'")
         if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
             raise ConfigError("frequency_affinity_m needs solver 'gauss_newton' (open3d's "
                               "ICP pairs by distance alone)")
-        if not (math.isfinite(self.rough_weight) and self.rough_weight >= 0.0):
-            raise ConfigError(f'rough_weight must be a finite number >= 0, '
-                              f'got {self.rough_weight}')
         if self.robust_kernel not in ROBUST_KERNELS:
             raise ConfigError(
                 f'robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}')
+        for name in ('motion_prior_weight', 'frequency_affinity_m', 'rough_weight',
+                     'motion_margin', 'rough_kernel_scale_m'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ConfigError(f'{name} must be a finite number >= 0, got {value}')
+        if self.rough_kernel_scale_m > 0.0 and self.solver != 'map_tree':
+            raise ConfigError("rough_kernel_scale_m needs solver 'map_tree'")
         positive = ('voxel_size_m', 'max_correspondence_distance_m', 'robust_kernel_scale_m',
                     'gicp_epsilon', 'map_voxel_size_m', 'map_max_range_m',
                     'keyframe_distance_m', 'keyframe_rotation_rad', 'max_translation_jump_m',
@@ -407,9 +414,6 @@ class RegistrationConfig:
         if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
             raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
                               f'{self.map_anchor_rough_view_deg}')
-        if not (math.isfinite(self.motion_margin) and self.motion_margin >= 0.0):
-            raise ConfigError(f'motion_margin must be a finite number >= 0, got '
-                              f'{self.motion_margin}')
         if not (math.isfinite(self.recovery_correspondence_factor)
                 and self.recovery_correspondence_factor >= 1.0):
             raise ConfigError(f'recovery_correspondence_factor must be >= 1, got '
@@ -624,6 +628,8 @@ class ScanRegistration:
         # smoothness or None).
         self._pending_keyframe: tuple | None = None
         self._adopt_at_scan = 0
+        # The last registered scan's (time offsets, motion, dt) when it was deskewed.
+        self._last_deskew: tuple | None = None
 
     @property
     def has_reference(self) -> bool:
@@ -819,12 +825,25 @@ class ScanRegistration:
         twists as this scan left them)."""
         if result.status == 'fallback_implausible':
             result.refused_speed_mps, result.refused_rate_rps = refused
+        # What deskewing this scan takes, for `deskewed_like_last` (the map's snapshot).
+        self._last_deskew = None if sweep.offsets_s is None else (
+            sweep.offsets_s, self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion),
+            sweep.dt_s)
         if self.config.output_deskewed_points:
             result.deskewed_points = (
                 sweep.points_xyz.copy() if sweep.offsets_s is None else deskew_points(
                     sweep.points_xyz, sweep.offsets_s,
                     self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion), sweep.dt_s))
         return result
+
+    def deskewed_like_last(self, points_xyz: np.ndarray) -> np.ndarray:
+        """The last registered scan's points (as it was given, after the crop) deskewed as
+        the map got them; as they are when that scan was not deskewed or they do not match."""
+        last = self._last_deskew
+        if last is None or last[0].shape[0] != points_xyz.shape[0]:
+            return points_xyz
+        offsets_s, motion, dt_s = last
+        return deskew_points(points_xyz, offsets_s, motion, dt_s)
 
     # ------------------------------------------------------------ matching
 

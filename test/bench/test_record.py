@@ -219,3 +219,17 @@ def test_rows_named_after_an_old_default_keep_it_when_the_default_moves():
     assert view_gated and all(share[label] == 0.0 for label in view_gated)
     any_side = [label for label in share if label.startswith('any-side share 0.25')]
     assert len(any_side) == 3 and all(share[label] == 0.25 for label in any_side)
+    # Session 18: deskew is the default; every row measured before keeps none.
+    entries = record.ENTRIES + record.ABLATION_ENTRIES + record.STUDY_ENTRIES
+    deskew = {e.label: e.config(base).registration.deskew for e in entries
+              if e.method in ('default+gft', 'default')}
+    assert base.registration.deskew and deskew['gft_odom']
+    assert not deskew['gft_odom without deskew (session 17 default)']
+    assert not deskew['gft_odom without the any-side share (session 16 default)']
+    assert not any(deskew[label] for label in view_gated + any_side)
+    assert all(deskew[label] for label in deskew if label.startswith('deskew'))
+    window = {e.label: e.config(base).registration.deskew_velocity_window for e in entries}
+    assert base.registration.deskew_velocity_window == window['gft_odom'] == 2
+    assert window['gft_odom + deskew (velocity window 5)'] == 5
+    assert window['deskew (session 17 default)'] == 5
+    assert not deskew['anchor smoothness 0.6, no any-side share']

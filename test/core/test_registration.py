@@ -394,16 +394,18 @@ def headland_turn(x0_m: float, speed_mps: float = 1.8, t_turn_s: float = 1.0,
     return pose_at
 
 
-@pytest.mark.parametrize('yaw_guesses, tracked', [(2, True), (0, False)])
+@pytest.mark.parametrize('yaw_guesses, deskew, tracked',
+                         [(2, False, True), (0, False, False), (0, True, True), (2, True, True)])
 def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(orchard, yaw_guesses,
-                                                                  tracked):
+                                                                  deskew, tracked):
     """1.8 m/s, 14 m past the row ends, then 2 rad/s within 0.1 s: from a prediction without
     the turn, ICP fits the ground at any yaw and slides; the row ends that fix the yaw lie
-    outside its gate. Re-acquisition's turned guesses find the turn; without them the heading
-    is lost (1.6 rad after 1 s here)."""
+    outside its gate. Re-acquisition's turned guesses find the turn; without them, and
+    without deskew, the heading is lost (1.6 rad after 1 s here). Deskewed (azimuth times),
+    this turn is tracked even without them."""
     scans = [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
              for k in range(20)]
-    reg = registration(recovery_yaw_guesses=yaw_guesses)
+    reg = registration(recovery_yaw_guesses=yaw_guesses, deskew=deskew)
     T_world0 = invert_transform(scans[0]['T_world_sensor'])
     yaw_errors = []
     for scan in scans:
