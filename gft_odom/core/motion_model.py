@@ -29,11 +29,11 @@ if TYPE_CHECKING:
     from gft_odom.core.registration import RegistrationConfig
 
 log = logging.getLogger(__name__)
-# The jump bounds hold per scan period and scale with the time the prediction covers: a
-# correction to the constant-velocity guess comes from a change of velocity, which grows with
-# that time. Below this share of a period they stop shrinking (ICP's own noise, mm and mrad,
-# is far under a tenth of the bounds).
-MIN_JUMP_ALLOWANCE = 0.1
+# Times are counted in scan periods, at least this share of one. The jump bounds hold per
+# period and scale with the time the prediction covers (a correction to the constant-velocity
+# guess comes from a change of velocity, which grows with that time); ICP's own noise, mm and
+# mrad, is far under a tenth of the bounds. A twist over a short span weighs its share.
+MIN_PERIOD_SHARE = 0.1
 
 
 def scale_delta(T: np.ndarray, factor: float) -> np.ndarray:
@@ -155,14 +155,17 @@ class MotionModel:
         return (distance_m <= cfg.max_speed_mps * slack
                 and angle_rad <= cfg.max_yaw_rate_rps * slack)
 
+    def _periods(self, span_s):
+        """`span_s` in scan periods, at least MIN_PERIOD_SHARE (scalar or array)."""
+        return np.maximum(MIN_PERIOD_SHARE, np.asarray(span_s) / self.config.scan_period_s)
+
     def jumped(self, T_pred: np.ndarray, T_est: np.ndarray, stamp_ns: int) -> bool:
         """Farther from the prediction than the jump bounds, scaled by the time the
         prediction has been extrapolated over (since the last trusted pose) in scan periods:
         a copy of a scan 30 ms after it may stray a third as far as a scan a period later."""
         cfg = self.config
         jump_m, jump_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
-        allowance = max(MIN_JUMP_ALLOWANCE,
-                        self.since_trusted(stamp_ns, T_est)[1] / cfg.scan_period_s)
+        allowance = self._periods(self.since_trusted(stamp_ns, T_est)[1])
         if (jump_m > cfg.max_translation_jump_m * allowance
                 or jump_rad > cfg.max_rotation_jump_rad * allowance):
             log.debug('ICP moved %.3f m / %.3f rad away from the prediction', jump_m, jump_rad)
@@ -279,7 +282,7 @@ class MotionModel:
         spans_s = np.array([span for _, span in twists[-window:]])
         # A span of a scan period or more weighs 1 (so steady scans give the plain mean); a
         # shorter one its share of a period: a velocity over 30 ms is ICP noise / 0.03 s.
-        weights = np.clip(spans_s / self.config.scan_period_s, MIN_JUMP_ALLOWANCE, 1.0)
+        weights = np.minimum(self._periods(spans_s), 1.0)
         mean = np.sum(velocities * weights[:, None], axis=0) / np.sum(weights)
         motion = delta_of_twist(mean, dt_s)
         return planar_delta(motion) if self.config.deskew_planar else motion
