@@ -3,10 +3,12 @@ the colcon-built node and a small simulated drive."""
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import random
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -14,8 +16,35 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICE_ATTEMPTS = 3  # requests sent before a service counts as not answering
+# After the session, the longest the interpreter may take to exit.
+EXIT_WATCHDOG_S = float(os.environ.get('GFT_ODOM_EXIT_WATCHDOG_S', '120'))
+_session_status: list[int] = [0]
 # Plain helper modules beside this file (helpers.py) are importable from every test.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Name the threads the tests leave running: one of them can keep the interpreter from
+    exiting."""
+    _session_status[0] = int(exitstatus)
+    left = [t.name for t in threading.enumerate()
+            if t is not threading.main_thread() and not t.daemon]
+    if left:
+        sys.stderr.write(f'\nthreads left running after the tests: {left}\n')
+
+
+def pytest_unconfigure(config):
+    """If the interpreter has not exited EXIT_WATCHDOG_S after the session (seen once in CI
+    under load: every test passed, then no exit), print every thread's stack and exit with the
+    session's status, so the hang is diagnosed instead of eating CI's time."""
+    def watchdog() -> None:
+        time.sleep(EXIT_WATCHDOG_S)
+        sys.stderr.write(f'\npytest did not exit {EXIT_WATCHDOG_S:.0f} s after the session; '
+                         'the stacks of its threads:\n')
+        faulthandler.dump_traceback(all_threads=True)
+        sys.stderr.flush()
+        os._exit(_session_status[0])
+    threading.Thread(target=watchdog, name='gft_odom-exit-watchdog', daemon=True).start()
 
 
 @pytest.fixture(scope='session')

@@ -101,19 +101,13 @@ def planar_delta(T_prev_curr: np.ndarray) -> np.ndarray:
     return out
 
 
-def rotations_from_rotvecs(rotvecs: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors -> (N, 3, 3) matrices (Rodrigues, vectorised, safe at 0)."""
-    theta = np.linalg.norm(rotvecs, axis=1)
-    small = theta < 1e-9
-    safe = np.where(small, 1.0, theta)
-    k = rotvecs / safe[:, None]
-    K = np.zeros((rotvecs.shape[0], 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
-    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
-    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
-    return np.eye(3)[None] + s * K + c * (K @ K)
+def rotate_about_axis(points_xyz: np.ndarray, axis: np.ndarray, angles_rad: np.ndarray
+                      ) -> np.ndarray:
+    """Each point (N, 3) turned by its own angle (N,) about one unit `axis` (Rodrigues on the
+    vectors: deskew's rotations share the axis of the twist, so no (N, 3, 3) matrices)."""
+    across = np.cross(axis, points_xyz)
+    return (points_xyz + np.sin(angles_rad)[:, None] * across
+            + (1.0 - np.cos(angles_rad))[:, None] * np.cross(axis, across))
 
 
 def deskew_points(points_xyz: np.ndarray, time_offset_s: np.ndarray,
@@ -129,5 +123,7 @@ def deskew_points(points_xyz: np.ndarray, time_offset_s: np.ndarray,
     if not np.any(omega) and not np.any(velocity):
         return points_xyz.copy()
     s = np.asarray(time_offset_s, dtype=float).reshape(-1, 1)
-    R = rotations_from_rotvecs(s * omega)
-    return np.einsum('nij,nj->ni', R, points_xyz) + s * velocity
+    rate_rps = float(np.linalg.norm(omega))
+    turned = (rotate_about_axis(points_xyz, omega / rate_rps, s[:, 0] * rate_rps)
+              if rate_rps > 0.0 else points_xyz)
+    return turned + s * velocity

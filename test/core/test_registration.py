@@ -509,6 +509,21 @@ def test_azimuth_offsets_follow_clockwise_spin_and_stamp_choice():
     assert azimuth_time_offsets(over, 0.1)[-1] == pytest.approx(0.1 * 362.0 / 360.0)
 
 
+def test_deskew_turns_each_point_by_its_share_of_a_3d_twist():
+    """The vectorised Rodrigues form agrees with each point's own rotation matrix, for a twist
+    with roll and pitch as well as yaw (a robot on a slope)."""
+    rng = np.random.default_rng(3)
+    points = rng.normal(0.0, 10.0, (500, 3))
+    offsets_s = rng.uniform(-SCAN_PERIOD_S, 0.0, 500)
+    omega_rps, velocity_mps = np.array([0.3, -0.2, 1.1]), np.array([1.5, 0.1, -0.05])
+    delta = make_transform(Rotation.from_rotvec(omega_rps * SCAN_PERIOD_S).as_matrix(),
+                           velocity_mps * SCAN_PERIOD_S)
+    expected = (Rotation.from_rotvec(offsets_s[:, None] * omega_rps).apply(points)
+                + offsets_s[:, None] * velocity_mps)
+    np.testing.assert_allclose(deskew_points(points, offsets_s, delta, SCAN_PERIOD_S),
+                               expected, atol=1e-9)
+
+
 def test_deskew_without_motion_is_the_identity(fast_scan):
     scan, _ = fast_scan
     out = deskew_points(scan['points'], scan['time'], np.eye(4), SCAN_PERIOD_S)
