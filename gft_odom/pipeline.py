@@ -173,7 +173,7 @@ class OdometryPipeline:
         if len(scan) == 0:
             return Rejection('empty', f'skipping empty scan at {scan.stamp_ns} ns (no finite '
                              'point)'), ''
-        if not np.ptp(scan.points_xyz, axis=0).max() > 0.0:
+        if not np.any(scan.points_xyz != scan.points_xyz[0]):
             # Every point in one spot: a driver glitch, not geometry (ICP would see one voxel).
             return Rejection('degenerate', f'skipping scan at {scan.stamp_ns} ns: all '
                              f'{len(scan)} points are identical'), ''

@@ -17,7 +17,8 @@ point of the cloud is the start of the sweep.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from gft_odom.core.geometry import rotation_matrix, rotation_vector
 
 TWO_PI = 2.0 * np.pi
 # Units a per-point time field comes in (velodyne float s, Ouster uint32 ns, some drivers us).
@@ -83,7 +84,7 @@ def twist_from_delta(T_prev_curr: np.ndarray, dt_s: float) -> tuple[np.ndarray, 
     """Angular (rad/s) and linear (m/s) velocity, in the sensor frame, of a per-scan delta."""
     if not dt_s > 0.0:
         return np.zeros(3), np.zeros(3)
-    omega = Rotation.from_matrix(T_prev_curr[:3, :3]).as_rotvec() / dt_s
+    omega = rotation_vector(T_prev_curr[:3, :3]) / dt_s
     return omega, T_prev_curr[:3, 3] / dt_s
 
 
@@ -95,8 +96,8 @@ def planar_delta(T_prev_curr: np.ndarray) -> np.ndarray:
     (0.01 rad of wrong pitch moves a point 0.6 m at 60 m).
     """
     out = np.eye(4)
-    yaw_rad = Rotation.from_matrix(T_prev_curr[:3, :3]).as_rotvec()[2]
-    out[:3, :3] = Rotation.from_rotvec([0.0, 0.0, yaw_rad]).as_matrix()
+    yaw_rad = rotation_vector(T_prev_curr[:3, :3])[2]
+    out[:3, :3] = rotation_matrix(np.array([0.0, 0.0, yaw_rad]))
     out[:2, 3] = T_prev_curr[:2, 3]
     return out
 

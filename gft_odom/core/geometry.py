@@ -29,6 +29,33 @@ def invert_transform(T: np.ndarray) -> np.ndarray:
     return out
 
 
+# Beyond this angle the axis of the skew part is ill-conditioned: scipy's general log map.
+_NEAR_HALF_TURN_RAD = 3.0
+
+
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """The rotation vector (axis x angle, rad) of one 3x3 rotation: the log map, in a few
+    flops (scipy's Rotation.from_matrix checks and orthonormalises: ~0.1 ms a call, several
+    calls a scan)."""
+    skew = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    twice_sin = float(np.sqrt(skew @ skew))
+    angle_rad = float(np.arctan2(0.5 * twice_sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    if angle_rad > _NEAR_HALF_TURN_RAD:
+        return Rotation.from_matrix(R).as_rotvec()
+    # angle / sin(angle) -> 1 at 0: the skew part is then 2 x the rotation vector.
+    return skew * (0.5 if twice_sin < 1e-12 else angle_rad / twice_sin)
+
+
+def rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """The 3x3 rotation of a rotation vector (rad): the exp map (Rodrigues)."""
+    angle_rad = float(np.linalg.norm(rotvec))
+    if angle_rad < 1e-12:
+        return np.eye(3)
+    x, y, z = np.asarray(rotvec, dtype=float) / angle_rad
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + np.sin(angle_rad) * K + (1.0 - np.cos(angle_rad)) * (K @ K)
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points."""
     return points @ T[:3, :3].T + T[:3, 3]

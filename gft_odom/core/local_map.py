@@ -32,10 +32,10 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial.transform import Rotation
 
 from gft_odom.core.anchors import AnchorStore
 from gft_odom.core.gauss_newton import MapTarget
+from gft_odom.core.geometry import rotation_vector
 from gft_odom.core.residuals import smoothness_from_covariances
 
 # Which keyframe a full map drops: the oldest (a sliding window in time) or the one farthest
@@ -305,7 +305,7 @@ class LocalMap:
         if np.linalg.norm(T_world_sensor[:3, 3] - T_last[:3, 3]) >= self.keyframe_distance_m:
             return True
         R_rel = T_last[:3, :3].T @ T_world_sensor[:3, :3]
-        return Rotation.from_matrix(R_rel).magnitude() >= self.keyframe_rotation_rad
+        return np.linalg.norm(rotation_vector(R_rel)) >= self.keyframe_rotation_rad
 
     @property
     def rebuild_in_flight(self) -> bool:

@@ -20,10 +20,14 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from gft_odom.core.deskew import planar_delta, twist_from_delta
-from gft_odom.core.geometry import invert_transform, make_transform
+from gft_odom.core.geometry import (
+    invert_transform,
+    make_transform,
+    rotation_matrix,
+    rotation_vector,
+)
 
 if TYPE_CHECKING:
     from gft_odom.core.registration import RegistrationConfig
@@ -39,8 +43,7 @@ MIN_PERIOD_SHARE = 0.1
 def scale_delta(T: np.ndarray, factor: float) -> np.ndarray:
     """The rigid motion `T` extrapolated to `factor` times its duration (constant twist)."""
     out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(
-        Rotation.from_matrix(T[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, :3] = rotation_matrix(rotation_vector(T[:3, :3]) * factor)
     out[:3, 3] = T[:3, 3] * factor
     return out
 
@@ -53,7 +56,7 @@ def twist_of(T_prev_curr: np.ndarray, dt_s: float) -> np.ndarray:
 
 def delta_of_twist(twist: np.ndarray, dt_s: float) -> np.ndarray:
     """The rigid motion of a constant twist (rot rad/s, lin m/s) lasting `dt_s`."""
-    return make_transform(Rotation.from_rotvec(twist[:3] * dt_s).as_matrix(), twist[3:] * dt_s)
+    return make_transform(rotation_matrix(twist[:3] * dt_s), twist[3:] * dt_s)
 
 
 def transform_magnitude(T: np.ndarray) -> tuple[float, float]:

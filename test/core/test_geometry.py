@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec, sec_nanosec_to_ns
 from gft_odom.core.geometry import (
     base_to_sensor_poses,
     least_variance_axis,
+    rotation_matrix,
+    rotation_vector,
     rpy_transform,
     sensor_to_base_poses,
 )
@@ -64,3 +68,16 @@ def test_least_variance_axis_is_eighs_smallest_eigenvector():
     assert separated.sum() >= 500
     dot = np.abs(np.einsum('ij,ij->i', axis[separated], vectors[separated, :, 0]))
     np.testing.assert_allclose(dot, 1.0, atol=1e-9)
+
+
+@pytest.mark.parametrize('angle_rad', [0.0, 1e-9, 1e-4, 0.1, 1.0, 2.9, 3.1, np.pi])
+def test_rotation_vector_and_matrix_are_scipys_log_and_exp(angle_rad):
+    rng = np.random.default_rng(int(1e3 * angle_rad))
+    for axis in rng.normal(size=(20, 3)):
+        rotvec = axis / np.linalg.norm(axis) * angle_rad
+        R = Rotation.from_rotvec(rotvec).as_matrix()
+        np.testing.assert_allclose(rotation_matrix(rotvec), R, atol=1e-12)
+        # At a half turn +v and -v are the same rotation: compare the rotations.
+        np.testing.assert_allclose(rotation_matrix(rotation_vector(R)), R, atol=1e-12)
+        if angle_rad < 3.0:
+            np.testing.assert_allclose(rotation_vector(R), rotvec, atol=1e-12)
