@@ -18,13 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from gft_odom.bench.faults import CASES, run_case
-from gft_odom.config import GftOdomConfig, with_values
+from gft_odom.config import GftOdomConfig
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.tum import read_tum
 from gft_odom.sim.simulator import SimConfig
 from gft_odom.sim.writer import simulate_to_bag
-
-TIME_CASES = ('time_in_s', 'time_in_us', 'time_in_ns')  # run with deskew on
 
 
 def main(argv=None) -> int:
@@ -35,7 +33,6 @@ def main(argv=None) -> int:
     parser.add_argument('--json')
     args = parser.parse_args(argv)
     config = GftOdomConfig()
-    deskew = with_values(config, {'registration.deskew': True})
     rows: dict[str, list[dict]] = {name: [] for name in CASES}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
@@ -46,8 +43,7 @@ def main(argv=None) -> int:
                 scans = list(reader)
             truth = read_tum(sim.gt_tum_path).poses
             for name in CASES:
-                cfg = deskew if name in TIME_CASES else config
-                result = run_case(name, scans, truth, cfg, args.fault_after)
+                result = run_case(name, scans, truth, config, args.fault_after)
                 row = {k: v for k, v in dataclasses.asdict(result).items() if k != 'results'}
                 row['statuses'] = dict(result.statuses)
                 row['seed'] = seed
