@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gft_odom.core.geometry import rotation_matrix, rotation_vector
+from gft_odom.core.geometry import rotate_about_axis, rotation_matrix, rotation_vector
 
 TWO_PI = 2.0 * np.pi
 # Units a per-point time field comes in (velodyne float s, Ouster uint32 ns, some drivers us).
@@ -100,15 +100,6 @@ def planar_delta(T_prev_curr: np.ndarray) -> np.ndarray:
     out[:3, :3] = rotation_matrix(np.array([0.0, 0.0, yaw_rad]))
     out[:2, 3] = T_prev_curr[:2, 3]
     return out
-
-
-def rotate_about_axis(points_xyz: np.ndarray, axis: np.ndarray, angles_rad: np.ndarray
-                      ) -> np.ndarray:
-    """Each point (N, 3) turned by its own angle (N,) about one unit `axis` (Rodrigues on the
-    vectors: deskew's rotations share the axis of the twist, so no (N, 3, 3) matrices)."""
-    across = np.cross(axis, points_xyz)
-    return (points_xyz + np.sin(angles_rad)[:, None] * across
-            + (1.0 - np.cos(angles_rad))[:, None] * np.cross(axis, across))
 
 
 def deskew_points(points_xyz: np.ndarray, time_offset_s: np.ndarray,

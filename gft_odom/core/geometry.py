@@ -56,6 +56,15 @@ def rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle_rad) * K + (1.0 - np.cos(angle_rad)) * (K @ K)
 
 
+def rotate_about_axis(points_xyz: np.ndarray, axis: np.ndarray, angles_rad: np.ndarray
+                      ) -> np.ndarray:
+    """Each point (N, 3) turned by its own angle (N,) about one unit `axis` (Rodrigues on the
+    vectors: deskew's rotations share the axis of the twist, so no (N, 3, 3) matrices)."""
+    across = np.cross(axis, points_xyz)
+    return (points_xyz + np.sin(angles_rad)[:, None] * across
+            + (1.0 - np.cos(angles_rad))[:, None] * np.cross(axis, across))
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points."""
     return points @ T[:3, :3].T + T[:3, 3]
