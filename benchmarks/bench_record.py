@@ -258,6 +258,11 @@ STUDY_ENTRIES = before_deskew((
           (('registration.deskew', True), ('registration.deskew_velocity_window', 1))),
     Entry('deskew, velocity window 2', 'default+gft',
           (('registration.deskew', True), ('registration.deskew_velocity_window', 2))),
+    # Session 19: the frequency choosing each source voxel's point (the smoothest) on the
+    # deskewed default; without frequencies it is the default's first point, so a gain here
+    # is the frequency's.
+    Entry('source voxels keep the smoothest point', 'default+gft',
+          (('registration.voxel_priority', 'smoothest'),)),
 )
 
 
