@@ -35,7 +35,7 @@ _NEAR_HALF_TURN_RAD = 3.0
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:
     """The rotation vector (axis x angle, rad) of one 3x3 rotation: the log map, in a few
-    flops (scipy's Rotation.from_matrix checks and orthonormalises: ~0.1 ms a call, several
+    flops (scipy's Rotation.from_matrix checks and orthonormalises: ~0.3 ms a call, several
     calls a scan)."""
     skew = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     twice_sin = float(np.sqrt(skew @ skew))

@@ -830,10 +830,8 @@ class ScanRegistration:
             sweep.offsets_s, self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion),
             sweep.dt_s)
         if self.config.output_deskewed_points:
-            result.deskewed_points = (
-                sweep.points_xyz.copy() if sweep.offsets_s is None else deskew_points(
-                    sweep.points_xyz, sweep.offsets_s,
-                    self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion), sweep.dt_s))
+            result.deskewed_points = (sweep.points_xyz.copy() if self._last_deskew is None
+                                      else deskew_points(sweep.points_xyz, *self._last_deskew))
         return result
 
     def deskewed_like_last(self, points_xyz: np.ndarray) -> np.ndarray:
