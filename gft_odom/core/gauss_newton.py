@@ -3,10 +3,11 @@
 open3d's ICP gives every correspondence the same residual and a kernel weight only; the
 frequency-aware registration needs a residual type and a weight per pair
 (`gft_odom.core.residuals`), so the solver is written here, in numpy: nearest neighbours from
-a scipy KD-tree of the map (built once per map rebuild), rows from the residual model, a robust
-kernel per residual, a 6x6 solve, repeat until the update is below `convergence_m`.
+the map's index (`core/nearest.py`, built once per map rebuild), rows from the residual
+model, a robust kernel per residual, a 6x6 solve, repeat until the update is below
+`convergence_m`.
 
-The KD-tree is asked for the `CANDIDATES` nearest map points of every scan point once, and
+The index is asked for the `CANDIDATES` nearest map points of every scan point once, and
 again only when the estimate has moved a typical scan point (at the median range) by more
 than `REQUERY_M` since: in
 between, each iteration picks the nearest of those candidates (a few vector operations
@@ -27,6 +28,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from gft_odom.core.geometry import least_variance_axis
+from gft_odom.core.nearest import MapIndex
 from gft_odom.core.residuals import Correspondences, normal_equations
 
 KERNELS = ('none', 'tukey', 'huber', 'cauchy')
@@ -43,7 +45,7 @@ class MapTarget:
     # (`normals_at`), from the same kNN neighbourhood open3d's estimate_normals uses.
     normals: np.ndarray | None
     smoothness: np.ndarray | None = None  # (n,) in [0, 1], for map-side models
-    tree: cKDTree | None = None
+    tree: MapIndex | None = None
     # (n,) the smoothness of the scan point each map point came from (NaN: unknown), for
     # matching like with like.
     point_smoothness: np.ndarray | None = None
@@ -54,7 +56,7 @@ class MapTarget:
     def __post_init__(self) -> None:
         self.squared_norms = np.einsum('ij,ij->i', self.points, self.points)
         if self.tree is None:
-            self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+            self.tree = MapIndex(self.points)
         if self.normals is None:
             n = self.points.shape[0]
             self._k = min(self.normal_neighbours, n)
@@ -66,6 +68,14 @@ class MapTarget:
             self._reach_m = np.zeros(n)
         self.n_normals_estimated = 0  # for the tests and the benchmarks
         self.n_normals_inherited = 0
+        self._padded: np.ndarray | None = None
+
+    def points_and_far_row(self, far_m: float) -> np.ndarray:
+        """(n + 1, 3): the points and a row at `far_m` on every axis, so that a search's
+        "none" (index n) gathers a point that is never the nearest. Built once."""
+        if self._padded is None or self._padded[-1, 0] != far_m:
+            self._padded = np.vstack([self.points, np.full((1, 3), far_m)])
+        return self._padded
 
     def normals_at(self, index: np.ndarray) -> np.ndarray:
         """The unit normals of the map points `index`.
