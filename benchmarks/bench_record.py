@@ -2,7 +2,8 @@
 
 Usage:
   .venv/bin/python benchmarks/bench_record.py
-      [--drives held-out|training|new-held-out|edge|confirm] [--jobs N] [--cache DIR]
+      [--drives held-out|training|new-held-out|edge|confirm|edge-confirm] [--jobs N]
+      [--cache DIR]
       [--only LABEL ...] [--out benchmarks/results]
 
 Simulates the drives once into the cache (`~/.cache/gft_odom/drives` or $GFT_ODOM_DRIVES;
@@ -20,6 +21,7 @@ from pathlib import Path
 
 from gft_odom.bench.drives import (
     CONFIRM_DRIVES,
+    EDGE_CONFIRM_DRIVES,
     EDGE_DRIVES,
     HELD_OUT_DRIVES,
     NEW_HELD_OUT_DRIVES,
@@ -34,7 +36,7 @@ RESULTS = Path(__file__).resolve().parent / 'results'
 # --drives: the drive set by name (its results go to <kind>_<name>.*).
 DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
               'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
-              'confirm': CONFIRM_DRIVES}
+              'confirm': CONFIRM_DRIVES, 'edge-confirm': EDGE_CONFIRM_DRIVES}
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels
@@ -263,6 +265,10 @@ STUDY_ENTRIES = before_deskew((
     # is the frequency's.
     Entry('source voxels keep the smoothest point', 'default+gft',
           (('registration.voxel_priority', 'smoothest'),)),
+    # Session 20: a trusted match that fits poorly for the recent ones is matched again from
+    # turned guesses (at a turn's onset in open ground ICP from the prediction turns too
+    # little and is trusted: edge drive 221).
+    Entry('turn check', 'default+gft', (('registration.turn_check', True),)),
 )
 
 

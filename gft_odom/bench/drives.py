@@ -57,6 +57,9 @@ EDGE_DRIVES = (Drive('edge_lawnmower', 221, 280.0), Drive('edge_lawnmower', 222,
 # figures: no choice was made on them before they were run.
 CONFIRM_DRIVES = (Drive('lawnmower', 231, 280.0), Drive('every_other_row', 232, 280.0),
                   Drive('spiral', 233, 280.0), Drive('out_and_back', 234, 280.0))
+# Seeds 223-224, added in session 20 after the turn check was designed on edge drive 221:
+# edge routes no choice was made on.
+EDGE_CONFIRM_DRIVES = (Drive('edge_lawnmower', 223, 280.0), Drive('edge_lawnmower', 224, 280.0))
 
 
 def default_cache_dir() -> Path:

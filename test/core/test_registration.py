@@ -14,6 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gft_odom.core.deskew import azimuth_time_offsets, deskew_points
+from gft_odom.core.gauss_newton import IcpResult
 from gft_odom.core.geometry import invert_transform, make_transform, transform_points
 from gft_odom.core.local_map import voxel_downsample_indices
 from gft_odom.core.registration import (
@@ -1050,3 +1051,34 @@ def test_a_deferred_map_update_gives_the_same_poses_and_waits_for_update_map(dri
     assert pending_seen >= 3 and updated_s >= 1
     deferred.reset()
     assert not deferred.map_update_pending and not deferred.has_reference
+
+
+@pytest.mark.parametrize('turn_check, margin, replaced',
+                         [(True, 0.03, True), (False, 0.03, False), (True, 0.2, False)])
+def test_a_poor_trusted_fit_is_replaced_by_a_turned_fit_that_fits_clearly_better(
+        drive, turn_check, margin, replaced):
+    """turn_check: a match trusted at a fit well below the recent ones is matched again from
+    turned guesses; a turned fit replaces it only when it fits better by the margin. The
+    ICP here reports fitness 0.80 from the prediction and 0.90 from anywhere else."""
+    reg = _moving_registration(drive, n_scans=8, turn_check=turn_check,
+                               turn_check_fitness_margin=margin)
+    real_register, inits = reg.icp.register, []
+
+    def scripted(source, target, init, distance_m, **kwargs):
+        result = real_register(source, target, init, distance_m, **kwargs)
+        inits.append(np.asarray(init, dtype=float))
+        return IcpResult(inits[-1], 0.80 if len(inits) == 1 else 0.90, result.inlier_rmse,
+                         np.asarray(result.correspondence_set), None, 1)
+
+    reg.icp.register = scripted
+    scan = drive[8]
+    result = reg.register(scan['points'], scan['stamp_ns'], scan['time'])
+    assert result.status == 'ok'
+    turned_rad = transform_magnitude(invert_transform(inits[0]) @ result.T_world_sensor)[1]
+    assert reg.n_turn_checks == (1 if turn_check else 0)
+    assert reg.n_turns_found == (1 if replaced else 0)
+    if replaced:  # one step of 1 rad/s over the scan period
+        assert turned_rad == pytest.approx(RegistrationConfig().recovery_yaw_rate_step_rps
+                                           * SCAN_PERIOD_S, rel=0.05)
+    else:
+        assert turned_rad < 1e-6
