@@ -242,8 +242,10 @@ class RegistrationConfig:
     # turn_check_fitness_margin (and passes every check a match does). At a turn's onset in
     # open ground ICP from the prediction settles on a pose turned too little, and it is
     # trusted: on edge drive 221 (scan 422) at fitness 0.83 where ICP from the true motion
-    # gives 0.92, against 0.001-0.006 between near ties elsewhere (docs/registration.md).
-    turn_check: bool = False
+    # gives 0.92, against 0.001-0.006 between near ties elsewhere. Session 20: edge drives
+    # 221-224 ATE 25.9 / 24.8 / 71.6 / 0.19 m -> 4.3 / 1.4 / 0.07 / 0.12 m, the ten held-out
+    # drives unchanged (docs/registration.md).
+    turn_check: bool = True
     turn_check_fitness_margin: float = 0.03
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a KD-tree built once per map rebuild instead of once per call:
