@@ -221,7 +221,8 @@ class AndersonPose:
 
 class ExactNearest:
     """Each query point's nearest map point within `max_distance_m`, over one registration:
-    the KD-tree is searched again only for the points whose candidates no longer prove it."""
+    the map's index is searched again only for the points whose candidates no longer prove
+    it."""
 
     def __init__(self, target: MapTarget, max_distance_m: float) -> None:
         self.target = target

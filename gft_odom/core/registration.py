@@ -248,7 +248,7 @@ class RegistrationConfig:
     turn_check: bool = True
     turn_check_fitness_margin: float = 0.03
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
-    # ICP step for step, over a KD-tree built once per map rebuild instead of once per call:
+    # ICP step for step, over a search index built once per map rebuild, not once per call:
     # the same trajectory, 0.74-0.87x the latency median on the held-out drives), 'open3d'
     # (its ICP: one residual type for every pair) or 'gauss_newton' (core/gauss_newton.py: a
     # residual type and weight per pair, set by residual_model). 'map_tree' is
