@@ -891,8 +891,23 @@ class ScanRegistration:
             return Match('fallback_implausible', T_pred, fitness, rmse, None)
         if self.motion.jumped(T_pred, T_est, stamp_ns):
             return Match('fallback_diverged', T_pred, fitness, rmse, None)
-        return Match('ok', T_est, fitness, rmse,
-                     icp_information(source_xyz, self.icp.matched(target), result, rmse))
+        return self._fitted('ok', result, T_est, source_xyz, target)
+
+    def _fitted(self, status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
+                target, velocity: np.ndarray | None = None) -> Match:
+        """A trusted Match of an ICP `result` (pose `T_est`): its fitness, RMSE and
+        information."""
+        rmse = float(result.inlier_rmse)
+        return Match(status, T_est, float(result.fitness), rmse,
+                     icp_information(source_xyz, self.icp.matched(target), result, rmse),
+                     velocity)
+
+    def _implied_or(self, velocity: np.ndarray | None, stamp_ns: int,
+                    T_est: np.ndarray) -> np.ndarray | None:
+        """The velocity the motion since the last trusted pose implies (`velocity` when
+        there is none to measure)."""
+        implied = self.motion.implied_velocity(stamp_ns, T_est)
+        return velocity if implied is None else implied
 
     def _turn_check_due(self, match: Match) -> bool:
         """A trusted match that fits poorly for the recent matches (`turn_check`)."""
@@ -925,14 +940,10 @@ class ScanRegistration:
             return match
         self.n_turns_found += 1
         result, T_est = best
-        rmse = float(result.inlier_rmse)
         velocity = match.velocity
         if match.status == 'recovered':  # re-acquisition keeps the velocity it implies
-            implied = self.motion.implied_velocity(stamp_ns, T_est)
-            velocity = velocity if implied is None else implied
-        return Match(match.status, T_est, float(result.fitness), rmse,
-                     icp_information(source_xyz, self.icp.matched(target), result, rmse),
-                     velocity)
+            velocity = self._implied_or(velocity, stamp_ns, T_est)
+        return self._fitted(match.status, result, T_est, source_xyz, target, velocity)
 
     def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
                    retry: bool = False) -> Match:
@@ -985,11 +996,8 @@ class ScanRegistration:
             return Match(status, T_pred, 0.0, 0.0, None)
         result, T_est, velocity = best
         if retry:
-            implied = self.motion.implied_velocity(stamp_ns, T_est)
-            velocity = velocity if implied is None else implied
-        rmse = float(result.inlier_rmse)
-        information = icp_information(source_xyz, self.icp.matched(target), result, rmse)
-        return Match('recovered', T_est, float(result.fitness), rmse, information, velocity)
+            velocity = self._implied_or(velocity, stamp_ns, T_est)
+        return self._fitted('recovered', result, T_est, source_xyz, target, velocity)
 
     # ------------------------------------------------------------ the reference
 
