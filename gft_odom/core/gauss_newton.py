@@ -70,11 +70,12 @@ class MapTarget:
         self.n_normals_inherited = 0
         self._padded: np.ndarray | None = None
 
-    def points_and_far_row(self, far_m: float) -> np.ndarray:
-        """(n + 1, 3): the points and a row at `far_m` on every axis, so that a search's
-        "none" (index n) gathers a point that is never the nearest. Built once."""
-        if self._padded is None or self._padded[-1, 0] != far_m:
-            self._padded = np.vstack([self.points, np.full((1, 3), far_m)])
+    def axes_and_far_point(self, far_m: float) -> np.ndarray:
+        """(3, n + 1): the points one axis per row (contiguous gathers), and a last point at
+        `far_m` on every axis, so that a search's "none" (index n) gathers a point that is
+        never the nearest. Built once."""
+        if self._padded is None or self._padded[0, -1] != far_m:
+            self._padded = np.hstack([self.points.T, np.full((3, 1), far_m)])
         return self._padded
 
     def normals_at(self, index: np.ndarray) -> np.ndarray:
@@ -83,11 +84,11 @@ class MapTarget:
         Estimated on demand: a scan pairs with a few thousand of the ~40k map points, so a
         rebuild that estimated every normal (most of a keyframe's cost) did mostly waste."""
         if self.normals is not None:
-            return self.normals[index]
+            return np.take(self.normals, index, axis=0)
         missing = index[~self._known[index]]
         if missing.shape[0]:
             self._estimate_normals(np.unique(missing))
-        return self._estimated[index]
+        return np.take(self._estimated, index, axis=0)
 
     def inherit_normals(self, previous: 'MapTarget', new_of_old: np.ndarray,
                         kept: bool = False) -> None:

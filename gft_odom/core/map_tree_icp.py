@@ -151,7 +151,7 @@ class MapTreeICP:
         there are no pairs or the system cannot be solved, as open3d)."""
         if pairs.shape[0] == 0:
             return np.eye(4)
-        p = world[pairs[:, 0]]
+        p = np.take(world, pairs[:, 0], axis=0)  # np.take: row gathers cheaper than indexing
         normals, r = _plane_residuals(world, target, pairs, p)
         J = np.empty((p.shape[0], 6))
         J[:, 0] = p[:, 1] * normals[:, 2] - p[:, 2] * normals[:, 1]  # p x n
@@ -172,9 +172,10 @@ class MapTreeICP:
 def _plane_residuals(world: np.ndarray, target: MapTarget, pairs: np.ndarray,
                      paired_xyz: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(the pairs' map normals, their point-to-plane residuals n . (p - q))."""
-    p = world[pairs[:, 0]] if paired_xyz is None else paired_xyz
+    p = np.take(world, pairs[:, 0], axis=0) if paired_xyz is None else paired_xyz
     normals = target.normals_at(pairs[:, 1])
-    return normals, np.einsum('ij,ij->i', p - target.points[pairs[:, 1]], normals)
+    return normals, np.einsum('ij,ij->i', p - np.take(target.points, pairs[:, 1], axis=0),
+                              normals)
 
 
 class AndersonPose:
@@ -248,7 +249,10 @@ class ExactNearest:
             self.proof_m = np.zeros(world.shape[0])
             self._search(np.arange(world.shape[0]), world)
         best, distance = self._nearest_candidate(world)
-        moved = np.linalg.norm(world - self.searched_at, axis=1)
+        step = world - self.searched_at
+        # By columns: the same values as np.linalg.norm(step, axis=1), a quarter of the time.
+        moved = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1]
+                        + step[:, 2] * step[:, 2])
         stale = np.flatnonzero(np.minimum(distance, self.max_distance_m)
                                > self.proof_m - moved)
         if stale.shape[0]:
@@ -262,9 +266,9 @@ class ExactNearest:
         d, index = self.target.tree.query(world[rows], k=CANDIDATES, distance_upper_bound=bound)
         self.candidates[rows] = index
         # A missing candidate (index n_map) is the far row, so it is never the nearest.
-        padded = self.target.points_and_far_row(FAR_M)
+        axes = self.target.axes_and_far_point(FAR_M)
         for axis in range(3):
-            self.candidate_xyz[axis][rows] = padded[:, axis][index]
+            self.candidate_xyz[axis][rows] = np.take(axes[axis], index)
         self.searched_at[rows] = world[rows]
         # Every map point not among the candidates is at least this far.
         self.proof_m[rows] = np.minimum(d[:, -1], bound)
@@ -278,6 +282,7 @@ class ExactNearest:
         offset *= offset
         d2 = offset[0] + offset[1]
         d2 += offset[2]
-        pick = np.argmin(d2, axis=1)[:, None]
-        return (np.take_along_axis(self.candidates[rows], pick, axis=1)[:, 0],
-                np.sqrt(np.take_along_axis(d2, pick, axis=1)[:, 0]))
+        # The picked column of each row, as flat indices (cheaper than take_along_axis).
+        flat = np.argmin(d2, axis=1)
+        flat += np.arange(0, d2.size, CANDIDATES)
+        return self.candidates[rows].ravel()[flat], np.sqrt(d2.ravel()[flat])

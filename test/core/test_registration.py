@@ -590,6 +590,9 @@ def test_voxel_downsample_keeps_one_point_per_voxel_in_input_order():
     assert np.all(np.diff(keep) > 0)
     cells = np.floor(points[keep] / 1.0)
     assert len(np.unique(cells, axis=0)) == len(keep) == len(np.unique(np.floor(points), axis=0))
+    # Each voxel keeps its first point in input order.
+    _, first = np.unique(np.floor(points), axis=0, return_index=True)
+    np.testing.assert_array_equal(keep, np.sort(first))
 
 
 def test_scale_delta_doubles_a_constant_twist():
