@@ -265,7 +265,7 @@ class ExactNearest:
         bound = self.max_distance_m + SEARCH_MARGIN_M
         d, index = self.target.tree.query(world[rows], k=CANDIDATES, distance_upper_bound=bound)
         self.candidates[rows] = index
-        # A missing candidate (index n_map) is the far row, so it is never the nearest.
+        # A missing candidate (index n_map) is the far point, so it is never the nearest.
         axes = self.target.axes_and_far_point(FAR_M)
         for axis in range(3):
             self.candidate_xyz[axis][rows] = np.take(axes[axis], index)
