@@ -1,4 +1,5 @@
-"""Rigid-body helpers: 4x4 homogeneous transforms and quaternions (x, y, z, w order, as TUM)."""
+"""Rigid-body helpers: 4x4 homogeneous transforms and quaternions (x, y, z, w order, as TUM);
+which points of a cloud are finite."""
 
 from __future__ import annotations
 
@@ -133,3 +134,15 @@ def least_variance_axis(covariance: np.ndarray) -> np.ndarray:
     if degenerate.any():
         axis[degenerate] = np.linalg.eigh(C[degenerate])[1][:, :, 0]
     return axis
+
+
+def finite_rows(points: np.ndarray) -> np.ndarray:
+    """(N,) which rows of `points` (N, k) are finite in every column.
+
+    `np.isfinite(points).all(axis=1)` costs ~0.5 ms on a 26 k-point scan, thirty times the
+    flat `.all()`; a decoded scan is all finite (the decoder drops the rest), so that is
+    checked first."""
+    finite = np.isfinite(points)
+    if finite.all():
+        return np.ones(points.shape[0], dtype=bool)
+    return finite.all(axis=1)

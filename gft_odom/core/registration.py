@@ -56,7 +56,7 @@ import open3d as o3d
 
 from gft_odom.core.constants import SCAN_PERIOD_S
 from gft_odom.core.deskew import azimuth_time_offsets, deskew_points
-from gft_odom.core.geometry import invert_transform, transform_points
+from gft_odom.core.geometry import finite_rows, invert_transform, transform_points
 from gft_odom.core.icp_backend import RECOVERY_ITERATIONS_FACTOR as RECOVERY_ITERATIONS_FACTOR
 from gft_odom.core.icp_backend import IcpBackend
 from gft_odom.core.local_map import (
@@ -1053,7 +1053,7 @@ class ScanRegistration:
                 raise RegistrationError(
                     f'time_offset_s has {time_offset_s.shape[0]} values for '
                     f'{points.shape[0]} points')
-        finite = np.isfinite(points).all(axis=1)
+        finite = finite_rows(points)
         if time_offset_s is not None:
             finite &= np.isfinite(time_offset_s)
         if not finite.all():

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec, sec_nanosec_to_ns
 from gft_odom.core.geometry import (
     base_to_sensor_poses,
+    finite_rows,
     least_variance_axis,
     rotation_matrix,
     rotation_vector,
@@ -81,3 +82,12 @@ def test_rotation_vector_and_matrix_are_scipys_log_and_exp(angle_rad):
         np.testing.assert_allclose(rotation_matrix(rotation_vector(R)), R, atol=1e-12)
         if angle_rad < 3.0:
             np.testing.assert_allclose(rotation_vector(R), rotvec, atol=1e-12)
+
+
+def test_finite_rows_is_isfinite_all_along_rows():
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(50, 3))
+    np.testing.assert_array_equal(finite_rows(points), np.ones(50, dtype=bool))
+    points[[3, 17, 40], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
+    np.testing.assert_array_equal(finite_rows(points), np.isfinite(points).all(axis=1))
+    assert finite_rows(np.zeros((0, 3))).shape == (0,)

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from gft_odom.core.geometry import finite_rows
 from gft_odom.core.spectral.bands import BandMask, validate_n_bands
 from gft_odom.core.spectral.chebyshev import lambda_max_per_slice
 from gft_odom.core.spectral.frequency import (
@@ -344,7 +345,7 @@ class SpectralFilter:
             self._warned_no_ring = True
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        finite = np.all(np.isfinite(points), axis=1)
+        finite = finite_rows(points)
         if use_scan_line:
             index = np.flatnonzero(finite) if not finite.all() else None
             coords = points if index is None else points[index]

@@ -19,6 +19,7 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gft_odom.core.geometry import finite_rows
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
 from gft_odom.core.types import Scan
 
@@ -70,7 +71,7 @@ class LocalMapSource:
         """Each point's frequency = its nearest map point's, found with the last pose; band 0
         (no spectrum) beyond `local_map_max_distance_m` from the map."""
         points = np.asarray(scan.points_xyz, dtype=np.float64)
-        finite = np.all(np.isfinite(points), axis=1)
+        finite = finite_rows(points)
         if not self._keyframes:  # first scan: it is the map
             self._add_keyframe(points[finite], self._T_last)
         if self._n_bands != n_bands or self._tree is None:
@@ -98,7 +99,7 @@ class LocalMapSource:
                 position - self._last_keyframe_xyz) < self.config.local_map_keyframe_distance_m):
             return
         points = np.asarray(scan.points_xyz, dtype=np.float64)
-        points = points[np.all(np.isfinite(points), axis=1)]
+        points = points[finite_rows(points)]
         self._add_keyframe(points, self._T_last)
         if self._n_bands is not None:
             self._recompute(self._n_bands)
