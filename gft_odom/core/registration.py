@@ -879,19 +879,28 @@ class ScanRegistration:
         T_est = np.asarray(result.transformation)
         if self.mode == 'paper':
             T_est = self.T_world_trusted @ T_est
-        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
+        refusal = self._refusal(T_est, float(result.fitness), T_pred, stamp_ns)
+        if refusal is not None:
+            return Match(refusal, T_pred, float(result.fitness), float(result.inlier_rmse),
+                         None)
+        return self._fitted('ok', result, T_est, source_xyz, target)
+
+    def _refusal(self, T_est: np.ndarray, fitness: float, T_pred: np.ndarray,
+                 stamp_ns: int) -> str | None:
+        """Why a match's pose `T_est` is not trusted (its fallback status), or None: every
+        check a match passes (the turn check's fits pass the same)."""
         if not np.all(np.isfinite(T_est)):
-            return Match('fallback_diverged', T_pred, fitness, rmse, None)
-        if fitness < cfg.min_fitness or (self.mode == 'default'
-                                         and self.trust.relatively_unfit(fitness)):
-            return Match('fallback_low_fitness', T_pred, fitness, rmse, None)
+            return 'fallback_diverged'
+        if fitness < self.config.min_fitness or (self.mode == 'default'
+                                                 and self.trust.relatively_unfit(fitness)):
+            return 'fallback_low_fitness'
         motion, elapsed_s = self.motion.since_trusted(stamp_ns, T_est)
         if not self.motion.is_plausible(motion, elapsed_s):
             log.debug('ICP implies motion beyond the bounds over %.3f s', elapsed_s)
-            return Match('fallback_implausible', T_pred, fitness, rmse, None)
+            return 'fallback_implausible'
         if self.motion.jumped(T_pred, T_est, stamp_ns):
-            return Match('fallback_diverged', T_pred, fitness, rmse, None)
-        return self._fitted('ok', result, T_est, source_xyz, target)
+            return 'fallback_diverged'
+        return None
 
     def _fitted(self, status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
                 target, velocity: np.ndarray | None = None) -> Match:
@@ -927,13 +936,9 @@ class ScanRegistration:
         for _, init in self.motion.turn_guesses(stamp_ns, retry=True):
             result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m)
             T_est, fitness = np.asarray(result.transformation), float(result.fitness)
-            if (not np.all(np.isfinite(T_est))
-                    or fitness < match.fitness + cfg.turn_check_fitness_margin
+            if (fitness < match.fitness + cfg.turn_check_fitness_margin
                     or (best is not None and fitness <= best[0].fitness)
-                    or self.trust.relatively_unfit(fitness)
-                    or self.motion.jumped(T_pred, T_est, stamp_ns)
-                    or not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns,
-                                                                               T_est))):
+                    or self._refusal(T_est, fitness, T_pred, stamp_ns) is not None):
                 continue
             best = (result, T_est)
         if best is None:
