@@ -146,3 +146,11 @@ def finite_rows(points: np.ndarray) -> np.ndarray:
     if finite.all():
         return np.ones(points.shape[0], dtype=bool)
     return finite.all(axis=1)
+
+
+def along_beams(points_xyz: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
+    """Points (sensor frame) moved along their beams by `distance_m` each (positive: away
+    from the sensor); a point never crosses to the sensor's other side (at most halved)."""
+    range_m = np.sqrt(np.einsum('ij,ij->i', points_xyz, points_xyz))
+    scale = np.maximum(1.0 + distance_m / np.maximum(range_m, 1e-9), 0.5)
+    return points_xyz * scale[:, None]

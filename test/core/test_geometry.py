@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec, sec_nanosec_to_ns
 from gft_odom.core.geometry import (
+    along_beams,
     base_to_sensor_poses,
     finite_rows,
     least_variance_axis,
@@ -91,3 +92,11 @@ def test_finite_rows_is_isfinite_all_along_rows():
     points[[3, 17, 40], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
     np.testing.assert_array_equal(finite_rows(points), np.isfinite(points).all(axis=1))
     assert finite_rows(np.zeros((0, 3))).shape == (0,)
+
+
+def test_along_beams_moves_each_point_radially_by_its_distance():
+    points = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 2.0], [1.0, 0.0, 0.0]])
+    moved = along_beams(points, np.array([1.0, -0.5, -5.0]))
+    np.testing.assert_allclose(np.linalg.norm(moved, axis=1), [6.0, 1.5, 0.5])  # last: halved
+    np.testing.assert_allclose(moved / np.linalg.norm(moved, axis=1)[:, None],
+                               points / np.linalg.norm(points, axis=1)[:, None])

@@ -1085,3 +1085,25 @@ def test_a_poor_trusted_fit_is_replaced_by_a_turned_fit_that_fits_clearly_better
                                            * SCAN_PERIOD_S, rel=0.05)
     else:
         assert turned_rad < 1e-6
+
+
+def test_rough_points_move_along_their_beams_into_the_map(static_pair):
+    """`rough_beam_shift_m`: a rough point (nu 0) moves its full shift along its beam, a
+    smooth one (nu >= smooth_nu) or one without frequencies not at all."""
+    a, _, _ = static_pair
+    n = len(a['points'])
+    maps = {}
+    for name, shift_m, nu in (('plain', 0.0, np.zeros(n)), ('rough', 0.2, np.zeros(n)),
+                              ('smooth', 0.2, np.full(n, 0.4)), ('no frequency', 0.2, None)):
+        reg = registration(rough_beam_shift_m=shift_m)
+        assert reg.register(a['points'], a['stamp_ns'], nu=nu).status == 'first'
+        maps[name] = np.linalg.norm(reg.local_map.points_xyz, axis=1)  # sensor at the origin
+    for name in ('smooth', 'no frequency'):
+        np.testing.assert_array_equal(maps[name], maps['plain'])
+    assert np.median(maps['rough']) - np.median(maps['plain']) == pytest.approx(0.2, abs=0.05)
+
+
+def test_rough_beam_shift_is_bounded():
+    with pytest.raises(ConfigError, match='rough_beam_shift_m'):
+        RegistrationConfig(rough_beam_shift_m=2.0).validate()
+    RegistrationConfig(rough_beam_shift_m=-0.1).validate()
