@@ -312,6 +312,12 @@ class OdometryPipeline:
         return self.spectral_filter.keep_mask(freqs, self.band_mask)
 
     def _crop(self, scan: Scan) -> Scan:
+        index = self._crop_index(scan)
+        return scan if index.size == len(scan) else scan.select(index)
+
+    def _crop_index(self, scan: Scan) -> np.ndarray:
+        """The points the range crop keeps, in scan order (a study can follow its own
+        per-point data, e.g. the simulator's labels, through the crop)."""
         cfg = self.config.pipeline
         r2 = np.einsum('ij,ij->i', scan.points_xyz, scan.points_xyz)
         keep = (r2 >= cfg.min_range_m ** 2) & (r2 <= cfg.max_range_m ** 2)
@@ -321,7 +327,7 @@ class OdometryPipeline:
             log.warning('scan at %d ns has %d points; keeping every %d-th (max_points_per_scan='
                         '%d)', scan.stamp_ns, index.size, stride, cfg.max_points_per_scan)
             index = index[::stride]
-        return scan if index.size == len(scan) else scan.select(index)
+        return index
 
     def reconfigure(self, config: GftOdomConfig) -> None:
         """Take new spectral / crop parameters at run time; registration keeps its state."""
