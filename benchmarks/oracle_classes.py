@@ -11,6 +11,11 @@ frequency nu / `smooth_nu`), so give it the TRUE class instead. Sources of the s
   (ground, trunks, posts, pipes, sheds, vehicles) smooth (smoothness 1);
 - `oracle_shuffled`: the oracle's values permuted among each scan's points (the same share of
   smooth points, chosen at random: the oracle's own control);
+- `curvature`: the scan's own frequency values, reassigned among its points in the order of
+  LOAM's smoothness (the spread of 5 neighbours each side along the point's scan line; the
+  flattest point gets the highest value): the same values and share, ordered by a plain
+  geometric regularity instead of the graph spectrum (does the frequency carry more than
+  curvature?);
 - `none`: no frequencies (`--no-filter`).
 
 If the oracle does not beat its shuffled control by much, no frequency, however well it
@@ -53,6 +58,7 @@ from gft_odom.bench.drives import (
 )
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.core.residuals import smoothness_from_nu
+from gft_odom.core.spectral.graph import scan_line_order
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.io.atomic import write_atomic, write_text_atomic
 from gft_odom.io.bags import ScanBagReader
@@ -66,7 +72,8 @@ from gft_odom.sim.writer import METADATA_FILE
 
 RESULTS = Path(__file__).parent / 'results' / 'oracle_classes.json'
 LABELS_FILE = 'oracle_labels.npz'
-SOURCES = ('frequency', 'shuffled', 'oracle', 'oracle_shuffled', 'none')
+SOURCES = ('frequency', 'shuffled', 'oracle', 'oracle_shuffled', 'curvature', 'none')
+LOAM_HALF_WINDOW = 5
 DRIVE_SETS = {'training': TRAINING_DRIVES[:5], 'held-out': HELD_OUT_DRIVES,
               'new-held-out': NEW_HELD_OUT_DRIVES, 'confirm': CONFIRM_DRIVES,
               'edge': EDGE_DRIVES}
@@ -76,6 +83,41 @@ def oracle_nu(surface: np.ndarray, smooth_nu: float) -> np.ndarray:
     """A frequency that is the class: canopy 0 (smoothness 0), any other surface `smooth_nu`
     (smoothness 1)."""
     return np.where(np.asarray(surface) == CANOPY, 0.0, float(smooth_nu))
+
+
+def loam_curvature(points_xyz: np.ndarray, ring: np.ndarray,
+                   half_window: int = LOAM_HALF_WINDOW) -> np.ndarray:
+    """LOAM's smoothness c of each point: |sum over the `half_window` neighbours each side
+    along its scan line of (x_j - x_i)| / (2 half_window |x_i|). NaN where the window leaves
+    the point's ring."""
+    order, _ = scan_line_order(points_xyz, ring)
+    xyz = np.asarray(points_xyz, dtype=np.float64)[order]
+    ring_sorted = np.asarray(ring)[order]
+    n, h = xyz.shape[0], int(half_window)
+    c = np.full(n, np.nan)
+    if n > 2 * h:
+        cs = np.vstack([np.zeros((1, 3)), np.cumsum(xyz, axis=0)])
+        k = np.arange(h, n - h)
+        window = cs[k + h + 1] - cs[k - h] - xyz[k]  # the 2h neighbours
+        spread = np.linalg.norm(window - 2 * h * xyz[k], axis=1)
+        inside = ring_sorted[k - h] == ring_sorted[k + h]  # sorted by ring: one ring
+        rng = np.maximum(np.linalg.norm(xyz[k], axis=1), 1e-9)
+        c[k] = np.where(inside, spread / (2 * h * rng), np.nan)
+    out = np.empty(n)
+    out[order] = c
+    return out
+
+
+def curvature_ranked_nu(nu: np.ndarray, points_xyz: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """The values of `nu` reassigned so their order follows LOAM's smoothness: the flattest
+    point (lowest c) gets the highest nu (smoothest); no window: the median c."""
+    c = loam_curvature(points_xyz, ring)
+    if np.all(np.isnan(c)):
+        return np.asarray(nu).copy()
+    c = np.where(np.isnan(c), np.nanmedian(c), c)
+    out = np.empty(len(nu))
+    out[np.argsort(c, kind='stable')] = np.sort(np.asarray(nu))[::-1]
+    return out
 
 
 def drive_labels(cache_dir: Path, drive: Drive, sim_config: SimConfig | None = None
@@ -112,6 +154,7 @@ class LabelledPipeline(OdometryPipeline):
         self.labels: np.ndarray | None = None
         self._cropped_labels: np.ndarray | None = None
         self._kept_labels: np.ndarray | None = None
+        self._kept = None  # the kept scan (the curvature source reads its points)
         self.smooth_share: list[float] = []  # per scan: kept points the registration sees smooth
 
     def _crop(self, scan):
@@ -122,6 +165,7 @@ class LabelledPipeline(OdometryPipeline):
     def _precomputed_keep(self, cropped, freqs):
         keep = super()._precomputed_keep(cropped, freqs)
         self._kept_labels = self._cropped_labels[keep]
+        self._kept = cropped.select(keep)
         return keep
 
     def _registration_nu(self, nu, stamp_ns):
@@ -132,6 +176,8 @@ class LabelledPipeline(OdometryPipeline):
             if self.source == 'oracle_shuffled':
                 stamp = int(stamp_ns) % (1 << 32)
                 nu = np.random.default_rng(stamp).permutation(nu)
+        elif self.source == 'curvature':
+            nu = curvature_ranked_nu(nu, self._kept.points_xyz, self._kept.ring)
         else:
             nu = super()._registration_nu(nu, stamp_ns)
         smooth = smoothness_from_nu(nu, self.config.registration.smooth_nu)

@@ -4,6 +4,7 @@ small registration scene."""
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -26,10 +27,14 @@ def velodyne_columns(n: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
-def load_script(path: Path) -> ModuleType:
-    """A Python file that is not in a package (a benchmark, a helper process) as a module."""
+def load_script(path: Path, register: bool = False) -> ModuleType:
+    """A Python file that is not in a package (a benchmark, a helper process) as a module.
+    `register`: also in sys.modules under its stem (dataclasses look their module up there
+    while being defined); the caller removes it."""
     spec = importlib.util.spec_from_file_location(Path(path).stem, path)
     module = importlib.util.module_from_spec(spec)
+    if register:
+        sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
 

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
 
@@ -16,12 +16,7 @@ SCRIPT = Path(__file__).resolve().parents[2] / 'benchmarks' / 'bias_study.py'
 
 @pytest.fixture(scope='module')
 def bias():
-    # Its dataclasses look their module up in sys.modules while being defined.
-    spec = importlib.util.spec_from_file_location('bias_study', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules['bias_study'] = module
-    spec.loader.exec_module(module)
-    yield module
+    yield load_script(SCRIPT, register=True)  # its dataclasses look their module up
     sys.modules.pop('bias_study', None)
 
 

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 from gft_odom.bench.drives import Drive
 from gft_odom.core.residuals import smoothness_from_nu
@@ -21,12 +20,7 @@ COARSE = SimConfig(azimuth_step_deg=1.0)
 
 @pytest.fixture(scope='module')
 def oracle():
-    spec = importlib.util.spec_from_file_location('oracle_classes', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules['oracle_classes'] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop('oracle_classes', None)
+    return load_script(SCRIPT)
 
 
 @pytest.fixture(scope='module')
@@ -45,6 +39,25 @@ def test_oracle_smoothness_follows_the_labels(oracle):
     assert smooth.tolist() == [1.0, 1.0, 0.0, 1.0, 0.0]
 
 
+def test_curvature_source_reorders_the_scans_own_values_by_flatness(oracle):
+    """A flat wall and a zig-zag on one ring: the wall gets the scan's highest values."""
+    y = np.linspace(-2.0, 2.0, 41)
+    wall = np.column_stack([np.full_like(y, 5.0), y, np.zeros_like(y)])
+    az = np.linspace(1.0, 2.0, 41)
+    radius = 5.0 + 0.3 * (-1.0) ** np.arange(az.size)
+    zigzag = np.column_stack([radius * np.cos(az), radius * np.sin(az), np.zeros_like(az)])
+    xyz = np.vstack([wall, zigzag])
+    ring = np.zeros(len(xyz), dtype=np.uint16)
+    c = oracle.loam_curvature(xyz, ring)
+    assert np.isnan(c[:5]).all() and np.isnan(c[-5:]).all()  # windows leave the ring's ends
+    inner_wall, inner_zigzag = c[5:36], c[46:77]
+    assert np.nanmax(inner_wall) < 1e-6 < np.nanmin(inner_zigzag)
+    nu = np.random.default_rng(0).uniform(0.0, 1.0, len(xyz))
+    ranked = oracle.curvature_ranked_nu(nu, xyz, ring)
+    assert np.sort(ranked).tolist() == np.sort(nu).tolist()  # the same values
+    assert ranked[5:36].min() > ranked[46:77].max()
+
+
 def test_labels_follow_each_scan_through_the_pipeline(oracle, short_drive):
     cache, drive = short_drive
     surface, counts = oracle.drive_labels(cache, drive, COARSE)
@@ -52,7 +65,7 @@ def test_labels_follow_each_scan_through_the_pipeline(oracle, short_drive):
     assert (cache / drive.name / oracle.LABELS_FILE).is_file()
     assert 0.1 < np.mean(surface == CANOPY) < 0.9  # a route between trees
     runs = {source: oracle.run_drive(cache, drive, source, [], COARSE)
-            for source in ('oracle', 'oracle_shuffled', 'frequency', 'none')}
+            for source in ('oracle', 'oracle_shuffled', 'frequency', 'curvature', 'none')}
     # The registration sees the labels' smooth share (every return is kept by default)...
     assert runs['oracle']['smooth_share_median'] == pytest.approx(
         np.mean(surface != CANOPY), abs=0.1)
@@ -61,6 +74,9 @@ def test_labels_follow_each_scan_through_the_pipeline(oracle, short_drive):
     # ...and its control the same share, at random.
     assert runs['oracle_shuffled']['smooth_share_median'] == pytest.approx(
         runs['oracle']['smooth_share_median'], abs=1e-9)
+    # The curvature source reorders the frequency's own values: the same share.
+    assert runs['curvature']['smooth_share_median'] == pytest.approx(
+        runs['frequency']['smooth_share_median'], abs=1e-9)
     assert runs['none']['smooth_share_median'] is None
     for run in runs.values():
         assert np.isfinite(run['ate_rmse_m'])
