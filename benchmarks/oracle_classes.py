@@ -59,13 +59,10 @@ from gft_odom.bench.drives import (
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.core.residuals import smoothness_from_nu
 from gft_odom.core.spectral.graph import scan_line_order
-from gft_odom.core.trajectory import Trajectory
 from gft_odom.io.atomic import write_atomic, write_text_atomic
-from gft_odom.io.bags import ScanBagReader
-from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.params_file import load_config
 from gft_odom.pipeline import OdometryPipeline
-from gft_odom.replay import ReplayResult, summarize
+from gft_odom.replay import run_replay
 from gft_odom.sim.orchard import CANOPY
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
 from gft_odom.sim.writer import METADATA_FILE
@@ -146,47 +143,52 @@ def drive_labels(cache_dir: Path, drive: Drive, sim_config: SimConfig | None = N
 
 class LabelledPipeline(OdometryPipeline):
     """The pipeline with the registration's frequencies taken from `source` (see the module
-    docstring); `labels` must be set to the scan's surface codes before each scan."""
+    docstring); bag scan k gets the labels `surface[offsets[k]:offsets[k + 1]]`."""
 
-    def __init__(self, config: GftOdomConfig, source: str):
+    def __init__(self, config: GftOdomConfig, source: str, surface: np.ndarray,
+                 counts: np.ndarray, name: str):
         super().__init__(config)
-        self.source = source
-        self.labels: np.ndarray | None = None
+        self.source, self.surface, self.counts, self.name = source, surface, counts, name
+        self.offsets = np.r_[0, np.cumsum(counts)]
+        self._scan_index = 0
         self._cropped_labels: np.ndarray | None = None
-        self._kept_labels: np.ndarray | None = None
-        self._kept = None  # the kept scan (the curvature source reads its points)
+        self._cropped, self._keep = None, None  # the scan the keep mask was computed on
         self.smooth_share: list[float] = []  # per scan: kept points the registration sees smooth
+
+    def register_frame(self, scan):
+        k, counts = self._scan_index, self.counts
+        if k >= counts.size or len(scan) != counts[k]:
+            raise RuntimeError(f'{self.name}: bag scan {k} has {len(scan)} points, its labels '
+                               f'{counts[k] if k < counts.size else "none"}')
+        self._labels = self.surface[self.offsets[k]:self.offsets[k + 1]]
+        self._scan_index += 1
+        return super().register_frame(scan)
 
     def _crop(self, scan):
         index = self._crop_index(scan)
-        self._cropped_labels = self.labels[index]
+        self._cropped_labels = self._labels[index]
         return scan if index.size == len(scan) else scan.select(index)
 
     def _precomputed_keep(self, cropped, freqs):
-        keep = super()._precomputed_keep(cropped, freqs)
-        self._kept_labels = self._cropped_labels[keep]
-        self._kept = cropped.select(keep)
-        return keep
+        self._cropped, self._keep = cropped, super()._precomputed_keep(cropped, freqs)
+        return self._keep
 
     def _registration_nu(self, nu, stamp_ns):
         if nu is None:
             return None
         if self.source.startswith('oracle'):
-            nu = oracle_nu(self._kept_labels, self.config.registration.smooth_nu)
-            if self.source == 'oracle_shuffled':
-                stamp = int(stamp_ns) % (1 << 32)
-                nu = np.random.default_rng(stamp).permutation(nu)
+            nu = oracle_nu(self._cropped_labels[self._keep], self.config.registration.smooth_nu)
         elif self.source == 'curvature':
-            nu = curvature_ranked_nu(nu, self._kept.points_xyz, self._kept.ring)
-        else:
-            nu = super()._registration_nu(nu, stamp_ns)
+            nu = curvature_ranked_nu(nu, self._cropped.points_xyz[self._keep],
+                                     self._cropped.ring[self._keep])
+        nu = super()._registration_nu(nu, stamp_ns)  # shuffled where the config asks
         smooth = smoothness_from_nu(nu, self.config.registration.smooth_nu)
         self.smooth_share.append(float(np.mean(smooth >= 0.75)))
         return nu
 
 
 def source_config(base: GftOdomConfig, source: str) -> GftOdomConfig:
-    if source == 'shuffled':
+    if source in ('shuffled', 'oracle_shuffled'):
         return with_values(base, {'pipeline.shuffle_frequencies': True})
     if source == 'none':
         return with_values(base, {'pipeline.use_spectral_filter': False})
@@ -199,29 +201,12 @@ def run_drive(cache_dir: Path, drive: Drive, source: str, overrides: list[str],
     `--set` takes them); the replay's metrics and the smooth share."""
     config = source_config(load_config(None, overrides), source)
     surface, counts = drive_labels(cache_dir, drive, sim_config)
-    offsets = np.r_[0, np.cumsum(counts)]
     sequence = drive_sequence(cache_dir, drive)
-    pipeline = LabelledPipeline(config, source)
-    statuses = []
+    pipeline = LabelledPipeline(config, source, surface, counts, drive.name)
     t0 = time.perf_counter()
-    with ScanBagReader([sequence.bag_path]) as reader:
-        for k, scan in enumerate(reader):
-            if k >= counts.size or len(scan) != counts[k]:
-                raise RuntimeError(f'{drive.name}: bag scan {k} has {len(scan)} points, its '
-                                   f'labels {counts[k] if k < counts.size else "none"}')
-            pipeline.labels = surface[offsets[k]:offsets[k + 1]]
-            result = pipeline.register_frame(scan)
-            pipeline.update_map()
-            statuses.append(result.status)
+    metrics = run_replay([sequence.bag_path], config, sequence.gt_path,
+                         pipeline=pipeline).metrics
     seconds = time.perf_counter() - t0
-    sensor: Trajectory = pipeline.sensor_trajectory()
-    n = len(statuses)
-    replay = ReplayResult(
-        sensor_trajectory=sensor, base_trajectory=pipeline.base_trajectory(),
-        latency_s=np.zeros(n), stage_s={}, points_in=np.zeros(n), points_kept=np.zeros(n),
-        statuses=statuses, ground_truth=read_ground_truth(sequence.gt_path),
-        ground_truth_is_gps=True)
-    metrics = summarize(replay, config)
     share = np.asarray(pipeline.smooth_share)
     return {'drive': drive.name, 'source': source, 'overrides': overrides,
             'ate_rmse_m': metrics['ate_rmse_m'], 'status_counts': metrics['status_counts'],

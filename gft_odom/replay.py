@@ -91,12 +91,14 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                gt_path: str | Path | None = None, topic: str = '/velodyne_points',
                max_scans: int | None = None,
                progress: Callable[[int, int], None] | None = None,
-               save_map_dir: str | Path | None = None) -> ReplayResult:
+               save_map_dir: str | Path | None = None,
+               pipeline: OdometryPipeline | None = None) -> ReplayResult:
     """Replay the scans of `bag_paths` through the pipeline; evaluate against `gt_path`.
     `save_map_dir`: write the final map and the trajectory there (`write_map`), as the
-    node's `~/save_map` does."""
+    node's `~/save_map` does. `pipeline`: a study's own (a subclass, built from `config`);
+    None: `OdometryPipeline(config)`."""
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
-    pipeline = OdometryPipeline(config)
+    pipeline = pipeline if pipeline is not None else OdometryPipeline(config)
     rng = np.random.default_rng(0)
     latency, map_update, stamps, points_in, points_kept, statuses = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
