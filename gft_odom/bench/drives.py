@@ -60,6 +60,9 @@ CONFIRM_DRIVES = (Drive('lawnmower', 231, 280.0), Drive('every_other_row', 232, 
 # Seeds 223-224, added in session 20 after the turn check was designed on edge drive 221:
 # edge routes no choice was made on.
 EDGE_CONFIRM_DRIVES = (Drive('edge_lawnmower', 223, 280.0), Drive('edge_lawnmower', 224, 280.0))
+# Seeds 225-228, added in session 24 after the turned guesses' own deskew was chosen on edge
+# drives 221-224: edge routes no choice was made on.
+EDGE_NEW_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (225, 226, 227, 228))
 
 
 def default_cache_dir() -> Path:
