@@ -593,6 +593,12 @@ class _Sweep:
         """How many points ICP matches."""
         return int(self.source_xyz.shape[0])
 
+    def deskewed(self, motion: np.ndarray) -> np.ndarray:
+        """The downsampled points deskewed with `motion` over the scan's `dt_s` (needs
+        `offsets_s`)."""
+        return deskew_points(self.points_xyz[self.keep], self.offsets_s[self.keep], motion,
+                             self.dt_s)
+
 
 def _delegated(part: str, name: str, settable: bool = False) -> property:
     """`name` of one of ScanRegistration's parts, readable where callers always found it."""
@@ -786,8 +792,7 @@ class ScanRegistration:
         t0 = time.perf_counter()
         if self.deskew and sweep.source_xyz.shape[0]:
             sweep.offsets_s = self._time_offsets(sweep.points_xyz, sweep.time_offset_s)
-            sweep.source_xyz = deskew_points(sweep.source_xyz, sweep.offsets_s[sweep.keep],
-                                             self.motion.deskew_motion(sweep.dt_s), sweep.dt_s)
+            sweep.source_xyz = sweep.deskewed(self.motion.deskew_motion(sweep.dt_s))
         timings['deskew'] = time.perf_counter() - t0
 
     def _match_or_reacquire(self, sweep: _Sweep, T_pred: np.ndarray, stamp_ns: int,
@@ -829,9 +834,7 @@ class ScanRegistration:
         # This scan's motion as deskew assumes it, worked out before the trusted pose moves.
         sweep.scan_motion = self.motion.scan_motion(stamp_ns, T_new, sweep.dt_s)
         sweep.map_motion = self.motion.deskew_motion(sweep.dt_s, sweep.scan_motion)
-        sweep.source_xyz = deskew_points(sweep.points_xyz[sweep.keep],
-                                         sweep.offsets_s[sweep.keep], sweep.map_motion,
-                                         sweep.dt_s)
+        sweep.source_xyz = sweep.deskewed(sweep.map_motion)
 
     def _finish(self, stamp_ns: int, status: str, T_new: np.ndarray, t_start: float,
                 timings: dict[str, float], sweep: _Sweep | None = None,
@@ -986,9 +989,8 @@ class ScanRegistration:
         (`turn_guess_deskew`); the sweep's own (deskewed with the prediction's) otherwise."""
         if not self.config.turn_guess_deskew or sweep.offsets_s is None or not sweep.dt_s > 0.0:
             return sweep.source_xyz
-        motion = self.motion.deskew_motion(sweep.dt_s, delta_of_twist(velocity, sweep.dt_s))
-        return deskew_points(sweep.points_xyz[sweep.keep], sweep.offsets_s[sweep.keep], motion,
-                             sweep.dt_s)
+        return sweep.deskewed(self.motion.deskew_motion(sweep.dt_s,
+                                                        delta_of_twist(velocity, sweep.dt_s)))
 
     def _reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
                    retry: bool = False) -> Match:
