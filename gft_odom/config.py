@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gft_odom.core.metrics import MetricsConfig
-from gft_odom.core.registration import RegistrationConfig
+from gft_odom.core.registration_config import RegistrationConfig
 from gft_odom.core.spectral.filter import SpectralConfig
 from gft_odom.errors import ConfigError
 from gft_odom.io.ground_truth import GroundTruthConfig

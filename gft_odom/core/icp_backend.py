@@ -23,7 +23,7 @@ from gft_odom.core.map_tree_icp import MapTreeICP
 from gft_odom.core.residuals import make_residual_model
 
 if TYPE_CHECKING:
-    from gft_odom.core.registration import RegistrationConfig
+    from gft_odom.core.registration_config import RegistrationConfig
 
 o3d_reg = o3d.pipelines.registration
 

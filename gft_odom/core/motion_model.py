@@ -30,7 +30,7 @@ from gft_odom.core.geometry import (
 )
 
 if TYPE_CHECKING:
-    from gft_odom.core.registration import RegistrationConfig
+    from gft_odom.core.registration_config import RegistrationConfig
 
 log = logging.getLogger(__name__)
 # Times are counted in scan periods, at least this share of one. The jump bounds hold per

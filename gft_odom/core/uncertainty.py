@@ -16,7 +16,7 @@ import numpy as np
 from gft_odom.core.gauss_newton import IcpResult, MapTarget
 
 if TYPE_CHECKING:
-    from gft_odom.core.registration import RegistrationConfig
+    from gft_odom.core.registration_config import RegistrationConfig
 
 
 def in_world_axes(matrix_6x6: np.ndarray, R_world_target: np.ndarray) -> np.ndarray:

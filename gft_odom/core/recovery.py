@@ -1,0 +1,164 @@
+"""What a match finds, and the second chances a poor or failed one gets: re-acquisition from
+the motion model's guesses (after a loss, or at once for a failed match) and the turn check
+(a poorly fitting match tried again from turned guesses).
+
+Every fit these return passes the checks of `TrustPolicy.refusal` that a match from the
+prediction passes, except re-acquisition after a loss (its guesses are rough: no jump check).
+docs/registration.md has the drives behind each rule.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from gft_odom.core.local_map import LocalMap, to_cloud
+from gft_odom.core.uncertainty import icp_information
+
+if TYPE_CHECKING:
+    from gft_odom.core.icp_backend import IcpBackend
+    from gft_odom.core.motion_model import MotionModel
+    from gft_odom.core.registration_config import RegistrationConfig
+    from gft_odom.core.trust import TrustPolicy
+
+
+class Match(NamedTuple):
+    """What matching (or re-acquiring) one scan found; the pose is the prediction's unless
+    trusted."""
+
+    status: str
+    T_world_sensor: np.ndarray
+    fitness: float
+    rmse: float
+    information: np.ndarray | None  # in the target's axes; None unless trusted
+    velocity: np.ndarray | None = None  # re-acquisition: the velocity it leaves behind
+
+
+def fitted_match(status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
+                 matched_target: np.ndarray, velocity: np.ndarray | None = None) -> Match:
+    """A trusted Match of an ICP `result` (pose `T_est`): its fitness, RMSE and information
+    (`matched_target`: the target as the ICP backend matched it)."""
+    rmse = float(result.inlier_rmse)
+    return Match(status, T_est, float(result.fitness), rmse,
+                 icp_information(source_xyz, matched_target, result, rmse), velocity)
+
+
+class Recovery:
+    """Re-acquisition and the turn check of default mode, against the local map."""
+
+    def __init__(self, config: RegistrationConfig, icp: IcpBackend, motion: MotionModel,
+                 trust: TrustPolicy, local_map: LocalMap):
+        self.config = config
+        self.icp = icp
+        self.motion = motion
+        self.trust = trust
+        self.local_map = local_map
+        self.reset()
+
+    def reset(self) -> None:
+        """turn_check: the matches checked from turned guesses, and those a turn replaced."""
+        self.n_turn_checks = 0
+        self.n_turns_found = 0
+
+    def _fitted(self, status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
+                target, velocity: np.ndarray | None = None) -> Match:
+        return fitted_match(status, result, T_est, source_xyz, self.icp.matched(target),
+                            velocity)
+
+    def _implied_or(self, velocity: np.ndarray | None, stamp_ns: int,
+                    T_est: np.ndarray) -> np.ndarray | None:
+        """The velocity the motion since the last trusted pose implies (`velocity` when
+        there is none to measure)."""
+        implied = self.motion.implied_velocity(stamp_ns, T_est)
+        return velocity if implied is None else implied
+
+    def turn_check_due(self, match: Match) -> bool:
+        """A trusted match that fits poorly for the recent matches (`turn_check`)."""
+        return (self.config.turn_check and self.config.mode == 'default'
+                and match.status in ('ok', 'recovered')
+                and self.trust.below_recent(match.fitness,
+                                            self.config.recovery_turn_relative_fitness))
+
+    def turn_check(self, deskewed_as: Callable[[np.ndarray], np.ndarray], T_pred: np.ndarray,
+                   stamp_ns: int, match: Match) -> Match:
+        """`match`, or the best fit from the turned guesses when it fits better by
+        `turn_check_fitness_margin` and passes every check a match does. `deskewed_as(v)`:
+        the scan's source points as matched from a guess of velocity `v`."""
+        cfg = self.config
+        target = self.local_map.cloud
+        self.n_turn_checks += 1
+        best = None
+        for guess_velocity, init in self.motion.turn_guesses(stamp_ns, retry=True):
+            source_xyz = deskewed_as(guess_velocity)
+            result = self.icp.register(to_cloud(source_xyz), target, init,
+                                       cfg.max_correspondence_distance_m)
+            T_est, fitness = np.asarray(result.transformation), float(result.fitness)
+            if (fitness < match.fitness + cfg.turn_check_fitness_margin
+                    or (best is not None and fitness <= best[0].fitness)
+                    or self.trust.refusal(T_est, fitness, T_pred, stamp_ns) is not None):
+                continue
+            best = (result, T_est, source_xyz)
+        if best is None:
+            return match
+        self.n_turns_found += 1
+        result, T_est, source_xyz = best
+        velocity = match.velocity
+        if match.status == 'recovered':  # re-acquisition keeps the velocity it implies
+            velocity = self._implied_or(velocity, stamp_ns, T_est)
+        return self._fitted(match.status, result, T_est, source_xyz, target, velocity)
+
+    def reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
+                   retry: bool = False) -> Match:
+        """Re-acquire against the map from a few initial guesses (the motion model's, from
+        the last trusted pose). From each: a coarse ICP with a widened correspondence
+        distance, then the normal one with more iterations. The plausible fit with the best
+        fitness wins; no jump check (the guesses are rough). Only when no plain guess gives
+        one, and their best fit is below `recovery_turn_relative_fitness` x the recent ones, are
+        turned guesses tried; a turned fit must fit better than every plain guess's, refused
+        ones included.
+
+        `retry`: a second chance for a scan whose match from the prediction failed, with the
+        current velocity as the one before the loss; the fit must pass every check a match
+        does (relative fitness, the jump from the prediction too), and the velocity becomes
+        the motion it implies."""
+        cfg = self.config
+        source, target = to_cloud(source_xyz), self.local_map.cloud
+        wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
+        best, status = None, 'fallback_low_fitness'
+        best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
+        for turned in (False, True):
+            if turned and (best is not None or not self.trust.below_recent(
+                    best_plain_fitness, cfg.recovery_turn_relative_fitness)):
+                # The last resort, and only for a poor fit: a plain fit that explains the scan
+                # as well as the recent matches was refused for the bounds or the jump, not a
+                # missed turn (a platform beyond the speed bound: every scan lands here).
+                break
+            guesses = (self.motion.turn_guesses(stamp_ns, retry) if turned
+                       else self.motion.reacquisition_guesses(stamp_ns, retry))
+            for velocity, init in guesses:
+                coarse = self.icp.register(source, target, init, wide_m)
+                result = self.icp.register(source, target, np.asarray(coarse.transformation),
+                                           cfg.max_correspondence_distance_m, recovery=True)
+                T_est = np.asarray(result.transformation)
+                if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
+                    continue
+                if not turned:
+                    best_plain_fitness = max(best_plain_fitness, float(result.fitness))
+                elif result.fitness <= best_plain_fitness:
+                    continue  # a turned guess that fits no better is a local minimum
+                if retry and (self.trust.relatively_unfit(float(result.fitness))
+                              or self.motion.jumped(T_pred, T_est, stamp_ns)):
+                    continue
+                if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
+                    status = 'fallback_implausible'
+                    continue
+                if best is None or result.fitness > best[0].fitness:
+                    best = (result, T_est, velocity)
+        if best is None:
+            return Match(status, T_pred, 0.0, 0.0, None)
+        result, T_est, velocity = best
+        if retry:
+            velocity = self._implied_or(velocity, stamp_ns, T_est)
+        return self._fitted('recovered', result, T_est, source_xyz, target, velocity)
