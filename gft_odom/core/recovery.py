@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from gft_odom.core.geometry import transform_points
 from gft_odom.core.local_map import LocalMap, to_cloud
 from gft_odom.core.uncertainty import icp_information
 
@@ -74,6 +75,17 @@ class Recovery:
         implied = self.motion.implied_velocity(stamp_ns, T_est)
         return velocity if implied is None else implied
 
+    def _fit_score(self, source_xyz: np.ndarray, T_world_sensor: np.ndarray,
+                   fitness: float) -> float:
+        """What the turn check compares fits by: ICP's `fitness`, or (`turn_check_gate_m`
+        > 0) the share of the points within that distance of the map at that pose."""
+        gate_m = self.config.turn_check_gate_m
+        if gate_m <= 0.0 or not source_xyz.shape[0]:
+            return fitness
+        distance, _ = self.local_map.target().tree.query(
+            transform_points(T_world_sensor, source_xyz), distance_upper_bound=gate_m)
+        return float(np.mean(np.isfinite(distance)))
+
     def turn_check_due(self, match: Match) -> bool:
         """A trusted match that fits poorly for the recent matches (`turn_check`)."""
         return (self.config.turn_check and self.config.mode == 'default'
@@ -81,29 +93,33 @@ class Recovery:
                 and self.trust.below_recent(match.fitness,
                                             self.config.recovery_turn_relative_fitness))
 
-    def turn_check(self, deskewed_as: Callable[[np.ndarray], np.ndarray], T_pred: np.ndarray,
+    def turn_check(self, source_xyz: np.ndarray,
+                   deskewed_as: Callable[[np.ndarray], np.ndarray], T_pred: np.ndarray,
                    stamp_ns: int, match: Match) -> Match:
-        """`match`, or the best fit from the turned guesses when it fits better by
-        `turn_check_fitness_margin` and passes every check a match does. `deskewed_as(v)`:
-        the scan's source points as matched from a guess of velocity `v`."""
+        """`match` (of `source_xyz`), or the best fit from the turned guesses when it fits
+        better by `turn_check_fitness_margin` (by `_fit_score`) and passes every check a match
+        does. `deskewed_as(v)`: the scan's source points as matched from a guess of velocity
+        `v`."""
         cfg = self.config
         target = self.local_map.cloud
         self.n_turn_checks += 1
         best = None
+        match_score = self._fit_score(source_xyz, match.T_world_sensor, match.fitness)
         for guess_velocity, init in self.motion.turn_guesses(stamp_ns, retry=True):
-            source_xyz = deskewed_as(guess_velocity)
-            result = self.icp.register(to_cloud(source_xyz), target, init,
+            guess_xyz = deskewed_as(guess_velocity)
+            result = self.icp.register(to_cloud(guess_xyz), target, init,
                                        cfg.max_correspondence_distance_m)
             T_est, fitness = np.asarray(result.transformation), float(result.fitness)
-            if (fitness < match.fitness + cfg.turn_check_fitness_margin
-                    or (best is not None and fitness <= best[0].fitness)
+            score = self._fit_score(guess_xyz, T_est, fitness)
+            if (score < match_score + cfg.turn_check_fitness_margin
+                    or (best is not None and score <= best[0])
                     or self.trust.refusal(T_est, fitness, T_pred, stamp_ns) is not None):
                 continue
-            best = (result, T_est, source_xyz)
+            best = (score, result, T_est, guess_xyz)
         if best is None:
             return match
         self.n_turns_found += 1
-        result, T_est, source_xyz = best
+        _, result, T_est, source_xyz = best
         velocity = match.velocity
         if match.status == 'recovered':  # re-acquisition keeps the velocity it implies
             velocity = self._implied_or(velocity, stamp_ns, T_est)

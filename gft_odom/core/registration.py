@@ -386,7 +386,8 @@ class ScanRegistration:
                 retried = self.recovery.reacquire(sweep.source_xyz, T_pred, stamp_ns, retry=True)
                 match = retried if retried.status == 'recovered' else match
             if self.recovery.turn_check_due(match):
-                match = self.recovery.turn_check(partial(self._deskewed_as, sweep), T_pred,
+                match = self.recovery.turn_check(sweep.source_xyz,
+                                                 partial(self._deskewed_as, sweep), T_pred,
                                                  stamp_ns, match)
         timings['icp'] = time.perf_counter() - t0
         return match.status, match.T_world_sensor, match, refused

@@ -187,6 +187,13 @@ class RegistrationConfig:
     # so its deskew bends the sweep the wrong way by up to the missed yaw rate x the scan
     # period (0.2 rad at 2 rad/s), and a turned pose matched with that sweep fits poorly.
     turn_guess_deskew: bool = True
+    # What the turn check compares its fits by: the share of the scan's points within this
+    # distance of the map at each pose (0: ICP's fitness, the share with a pair within
+    # max_correspondence_distance_m). In open ground at a turn's onset every heading fits
+    # ~0.85-0.88 within 1 m (the ground pairs with any), while within 0.3 m the true turn
+    # fits 0.68 against 0.57 for the missed one (edge drive 227, docs/registration.md,
+    # session 25). Edge drives 222 / 227: 0.171 / 7.52 -> 0.107 / 2.60 m, the others unchanged.
+    turn_check_gate_m: float = 0.3
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
     # the same trajectory, 0.74-0.87x the latency median on the held-out drives), 'open3d'
@@ -332,7 +339,7 @@ class RegistrationConfig:
             raise ConfigError(
                 f'robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}')
         for name in ('motion_prior_weight', 'frequency_affinity_m', 'rough_weight',
-                     'motion_margin', 'rough_kernel_scale_m'):
+                     'motion_margin', 'rough_kernel_scale_m', 'turn_check_gate_m'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ConfigError(f'{name} must be a finite number >= 0, got {value}')

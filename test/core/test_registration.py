@@ -1064,7 +1064,7 @@ def test_a_poor_trusted_fit_is_replaced_by_a_turned_fit_that_fits_clearly_better
     turned guesses; a turned fit replaces it only when it fits better by the margin. The
     ICP here reports fitness 0.80 from the prediction and 0.90 from anywhere else."""
     reg = _moving_registration(drive, n_scans=8, turn_check=turn_check,
-                               turn_check_fitness_margin=margin)
+                               turn_check_fitness_margin=margin, turn_check_gate_m=0.0)
     real_register, inits = reg.icp.register, []
 
     def scripted(source, target, init, distance_m, **kwargs):
@@ -1085,6 +1085,32 @@ def test_a_poor_trusted_fit_is_replaced_by_a_turned_fit_that_fits_clearly_better
                                            * SCAN_PERIOD_S, rel=0.05)
     else:
         assert turned_rad < 1e-6
+
+
+@pytest.mark.parametrize('gate_m, replaced', [(0.0, True), (0.3, False)])
+def test_with_a_gate_the_turn_check_compares_fits_by_their_points_near_the_map(
+        drive, gate_m, replaced):
+    """turn_check_gate_m: ICP's fitness counts pairs within 1 m, which open ground gives any
+    heading; within the gate the true pose stands out. Here ICP reports 0.80 for the match
+    from the prediction (the true pose: the drive is straight) and 0.90 for each turned guess
+    left where it started (0.1 rad off): by fitness a turn wins, by the gate the match."""
+    reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=gate_m)
+    real_register, inits = reg.icp.register, []
+
+    def scripted(source, target, init, distance_m, **kwargs):
+        result = real_register(source, target, init, distance_m, **kwargs)
+        inits.append(np.asarray(init, dtype=float))
+        first = len(inits) == 1
+        T = np.asarray(result.transformation) if first else inits[-1]
+        return IcpResult(T, 0.80 if first else 0.90, result.inlier_rmse,
+                         np.asarray(result.correspondence_set), None, 1)
+
+    reg.icp.register = scripted
+    scan = drive[8]
+    result = reg.register(scan['points'], scan['stamp_ns'], scan['time'])
+    assert result.status == 'ok' and reg.n_turn_checks == 1
+    assert reg.n_turns_found == (1 if replaced else 0)
+    assert result.fitness == pytest.approx(0.90 if replaced else 0.80)
 
 
 def onset_of_turn(onset_s: float, speed_mps: float = 1.5, yaw_rate_rps: float = 2.0):
