@@ -26,6 +26,13 @@ MAP_NORMALS = ('rebuild', 'on_demand', 'kept')
 MAP_UPDATES = ('auto', 'inline', 'background')
 VOXEL_PRIORITIES = ('first', 'smoothest')
 
+# Every field that names one of a few choices, and those choices.
+CHOICES = {'mode': MODES, 'estimation': ESTIMATIONS, 'map_keyframe_eviction': KEYFRAME_EVICTIONS,
+           'map_voxel_keeps': VOXEL_KEEPS, 'map_points_from': MAP_POINTS_FROM,
+           'voxel_priority': VOXEL_PRIORITIES, 'solver': SOLVERS, 'map_normals': MAP_NORMALS,
+           'map_update': MAP_UPDATES, 'residual_model': RESIDUAL_MODELS,
+           'rough_residual': ROUGH_RESIDUALS, 'robust_kernel': ROBUST_KERNELS}
+
 
 @dataclass(frozen=True)
 class RegistrationConfig:
@@ -289,44 +296,17 @@ class RegistrationConfig:
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
-        if self.mode not in MODES:
-            raise ConfigError(f'mode must be one of {MODES}, got {self.mode!r}')
-        if self.estimation not in ESTIMATIONS:
-            raise ConfigError(f'estimation must be one of {ESTIMATIONS}, got {self.estimation!r}')
-        if self.map_keyframe_eviction not in KEYFRAME_EVICTIONS:
-            raise ConfigError(f'map_keyframe_eviction must be one of {KEYFRAME_EVICTIONS}, '
-                              f'got {self.map_keyframe_eviction!r}')
-        if self.map_voxel_keeps not in VOXEL_KEEPS:
-            raise ConfigError(f'map_voxel_keeps must be one of {VOXEL_KEEPS}, '
-                              f'got {self.map_voxel_keeps!r}')
-        if self.map_points_from not in MAP_POINTS_FROM:
-            raise ConfigError(f'map_points_from must be one of {MAP_POINTS_FROM}, '
-                              f'got {self.map_points_from!r}')
-        if self.voxel_priority not in VOXEL_PRIORITIES:
-            raise ConfigError(f'voxel_priority must be one of {VOXEL_PRIORITIES}, '
-                              f'got {self.voxel_priority!r}')
-        if self.solver not in SOLVERS:
-            raise ConfigError(f'solver must be one of {SOLVERS}, got {self.solver!r}')
-        if self.map_normals not in MAP_NORMALS:
-            raise ConfigError(f'map_normals must be one of {MAP_NORMALS}, '
-                              f'got {self.map_normals!r}')
+        for name, choices in CHOICES.items():
+            if getattr(self, name) not in choices:
+                raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
         if self.map_normals != 'rebuild' and self.solver == 'open3d':
             raise ConfigError(f"map_normals {self.map_normals!r} needs solver 'map_tree' or "
                               "'gauss_newton' (open3d's ICP estimates its own)")
-        if self.map_update not in MAP_UPDATES:
-            raise ConfigError(f'map_update must be one of {MAP_UPDATES}, '
-                              f'got {self.map_update!r}')
         if self.map_update == 'background' and not self._background_map_possible:
             raise ConfigError("map_update 'background' needs mode 'default', solver "
                               "'map_tree' or 'gauss_newton', map_normals 'rebuild', "
                               "point-to-plane estimation and no 'planarity' residual model "
                               "('auto' falls back to 'inline' where these do not hold)")
-        if self.residual_model not in RESIDUAL_MODELS:
-            raise ConfigError(f'residual_model must be one of {RESIDUAL_MODELS}, '
-                              f'got {self.residual_model!r}')
-        if self.rough_residual not in ROUGH_RESIDUALS:
-            raise ConfigError(f'rough_residual must be one of {ROUGH_RESIDUALS}, '
-                              f'got {self.rough_residual!r}')
         if self.residual_model != 'plane' and self.solver != 'gauss_newton':
             raise ConfigError(f"residual_model {self.residual_model!r} needs solver "
                               f"'gauss_newton' (open3d's ICP has one residual type)")
@@ -335,9 +315,6 @@ class RegistrationConfig:
         if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
             raise ConfigError("frequency_affinity_m needs solver 'gauss_newton' (open3d's "
                               "ICP pairs by distance alone)")
-        if self.robust_kernel not in ROBUST_KERNELS:
-            raise ConfigError(
-                f'robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}')
         for name in ('motion_prior_weight', 'frequency_affinity_m', 'rough_weight',
                      'motion_margin', 'rough_kernel_scale_m', 'turn_check_gate_m'):
             value = getattr(self, name)
