@@ -122,12 +122,17 @@ class IcpBackend:
 
     def register(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
                  init: np.ndarray, distance_m: float, recovery: bool = False,
-                 prior: bool = False):
+                 prior: bool = False, max_iterations: int | None = None):
         """ICP of `source` onto `target` from `init` with pairs up to `distance_m` apart
-        (`recovery`: the longer iteration budget of re-acquisition; `prior`: `init` is the
-        motion model's prediction, a soft prior with motion_prior_weight). Returns open3d's
-        result or the solver's IcpResult (transformation, fitness, inlier_rmse)."""
+        (`recovery`: the longer iteration budget of re-acquisition; `max_iterations`: another
+        budget; `prior`: `init` is the motion model's prediction, a soft prior with
+        motion_prior_weight). Returns open3d's result or the solver's IcpResult
+        (transformation, fitness, inlier_rmse)."""
         criteria = self.recovery_criteria if recovery else self.criteria
+        if max_iterations is not None:
+            criteria = o3d_reg.ICPConvergenceCriteria(
+                relative_fitness=criteria.relative_fitness,
+                relative_rmse=criteria.relative_rmse, max_iteration=max_iterations)
         if self.solver is not None and target is self.local_map.cloud:
             return self.solver.register(np.asarray(source.points), self.local_map.target(),
                                         init, distance_m, self.source_smoothness,

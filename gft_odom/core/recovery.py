@@ -99,18 +99,32 @@ class Recovery:
         """`match` (of `source_xyz`), or the best fit from the turned guesses when it fits
         better by `turn_check_fitness_margin` (by `_fit_score`) and passes every check a match
         does. `deskewed_as(v)`: the scan's source points as matched from a guess of velocity
-        `v`."""
+        `v`. With `turn_check_screen_iterations`, a guess that fits worse than the match
+        after that many iterations is not matched further."""
         cfg = self.config
         target = self.local_map.cloud
         self.n_turn_checks += 1
         best = None
         match_score = self._fit_score(source_xyz, match.T_world_sensor, match.fitness)
+        screen = cfg.turn_check_screen_iterations
+        screening = 0 < screen < cfg.max_iterations
         for guess_velocity, init in self.motion.turn_guesses(stamp_ns, retry=True):
             guess_xyz = deskewed_as(guess_velocity)
-            result = self.icp.register(to_cloud(guess_xyz), target, init,
-                                       cfg.max_correspondence_distance_m)
+            guess = to_cloud(guess_xyz)
+            result = self.icp.register(guess, target, init, cfg.max_correspondence_distance_m,
+                                       max_iterations=screen if screening else None)
             T_est, fitness = np.asarray(result.transformation), float(result.fitness)
             score = self._fit_score(guess_xyz, T_est, fitness)
+            if screening:
+                if score < match_score:
+                    continue  # screened out: no better than the match after `screen` steps
+                if getattr(result, 'n_iterations', screen) >= screen:  # not converged yet
+                    # ICP carries on from where it stopped: the full budget's iterates.
+                    result = self.icp.register(guess, target, T_est,
+                                               cfg.max_correspondence_distance_m,
+                                               max_iterations=cfg.max_iterations - screen)
+                    T_est, fitness = np.asarray(result.transformation), float(result.fitness)
+                    score = self._fit_score(guess_xyz, T_est, fitness)
             if (score < match_score + cfg.turn_check_fitness_margin
                     or (best is not None and score <= best[0])
                     or self.trust.refusal(T_est, fitness, T_pred, stamp_ns) is not None):

@@ -201,6 +201,14 @@ class RegistrationConfig:
     # fits 0.68 against 0.57 for the missed one (edge drive 227, docs/registration.md,
     # session 25). Edge drives 222 / 227: 0.171 / 7.52 -> 0.107 / 2.60 m, the others unchanged.
     turn_check_gate_m: float = 0.3
+    # The turn check first matches each turned guess for this many ICP iterations and
+    # carries on (to max_iterations in all) only with those that then fit at least as well
+    # as the match it checks (by the score above); 0: every guess to max_iterations. Turned
+    # ICPs start 0.1-0.2 rad off and 80-90 % of them run to the cap (~25 ms each, four a
+    # check: the scans over 100 ms). On edge drives 221 / 222 a screen of 10 iterations keeps
+    # every check's outcome of the full budget (82 checks) and continues 0.4-0.6 guesses a
+    # check (docs/registration.md, session 26).
+    turn_check_screen_iterations: int = 10
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
     # the same trajectory, 0.74-0.87x the latency median on the held-out drives), 'open3d'
@@ -341,7 +349,7 @@ class RegistrationConfig:
                    'map_anchor_max_points': 1,
                    'normal_neighbours': 5, 'min_points': 3, 'max_consecutive_fallbacks': 1,
                    'deskew_velocity_window': 1, 'recovery_yaw_guesses': 0,
-                   'anderson_memory': 0}
+                   'anderson_memory': 0, 'turn_check_screen_iterations': 0}
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
