@@ -1113,6 +1113,51 @@ def test_with_a_gate_the_turn_check_compares_fits_by_their_points_near_the_map(
     assert result.fitness == pytest.approx(0.90 if replaced else 0.80)
 
 
+@pytest.mark.parametrize('screen', [10, 0])
+def test_the_turn_check_carries_on_only_with_guesses_that_fit_as_well_as_the_match(
+        drive, screen):
+    """turn_check_screen_iterations: each turned guess is matched for that many iterations;
+    only those then fitting at least as well as the match go on, from where they stopped, for
+    the rest of max_iterations. The ICP here reports 0.80 from the prediction, 0.70 / 0.85
+    for alternate turned guesses after the screen, 0.90 once carried on (0: no screen, every
+    guess to the full budget at 0.85)."""
+    reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=0.0,
+                               turn_check_screen_iterations=screen)
+    real_register, calls = reg.icp.register, []
+
+    def scripted(source, target, init, distance_m, **kwargs):
+        result = real_register(source, target, init, distance_m, **kwargs)
+        budget = kwargs.get('max_iterations')
+        n_screened = sum(1 for _, b, _ in calls if b == screen)
+        if not calls:
+            fitness = 0.80
+        elif budget == screen:
+            fitness = 0.70 if n_screened % 2 == 0 else 0.85
+        else:
+            fitness = 0.90 if screen else 0.85
+        T = np.asarray(init, dtype=float).copy()
+        T[2, 3] += 0.01  # where this call stopped
+        calls.append((np.asarray(init, dtype=float), budget, T))
+        return IcpResult(T, fitness, result.inlier_rmse, np.asarray(result.correspondence_set),
+                         None, budget or RegistrationConfig().max_iterations)
+
+    reg.icp.register = scripted
+    scan = drive[8]
+    result = reg.register(scan['points'], scan['stamp_ns'], scan['time'])
+    assert reg.n_turn_checks == 1 and reg.n_turns_found == 1
+    budgets = [budget for _, budget, _ in calls[1:]]
+    if not screen:
+        assert budgets == [None] * 4
+        assert result.fitness == pytest.approx(0.85)
+        return
+    full = RegistrationConfig().max_iterations
+    # Guesses 1 and 3 fit as well as the match after the screen and carry on; 0 and 2 stop.
+    assert budgets == [screen, screen, full - screen, screen, screen, full - screen]
+    for k in (2, 5):  # each carries on from where its screen stopped
+        np.testing.assert_array_equal(calls[k + 1][0], calls[k][2])
+    assert result.fitness == pytest.approx(0.90)
+
+
 def onset_of_turn(onset_s: float, speed_mps: float = 1.5, yaw_rate_rps: float = 2.0):
     """Straight along x until `onset_s`, then a turn at `yaw_rate_rps` (a headland corner)."""
     def pose_at(times_s):
