@@ -38,6 +38,8 @@ ENTRIES = (
           (('registration.map_update', 'inline'),)),
     Entry('gft_odom, map update in the background', 'default+gft',
           (('registration.map_update', 'background'),)),
+    Entry('gft_odom, no turn-check screen (session 25 default)', 'default+gft',
+          (('registration.turn_check_screen_iterations', 0),)),
     Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
     Entry('gft_odom without the any-side share (session 16 default)', 'default+gft',
           NO_DESKEW + NO_ANY_SIDE),

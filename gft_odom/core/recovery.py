@@ -99,35 +99,31 @@ class Recovery:
         """`match` (of `source_xyz`), or the best fit from the turned guesses when it fits
         better by `turn_check_fitness_margin` (by `_fit_score`) and passes every check a match
         does. `deskewed_as(v)`: the scan's source points as matched from a guess of velocity
-        `v`. With `turn_check_screen_iterations`, a guess that fits worse than the match
-        after that many iterations is not matched further."""
+        `v`. With `turn_check_screen_iterations`, only the guesses `_carried_on` are matched
+        to the full budget."""
         cfg = self.config
         target = self.local_map.cloud
         self.n_turn_checks += 1
-        best = None
         match_score = self._fit_score(source_xyz, match.T_world_sensor, match.fitness)
         screen = cfg.turn_check_screen_iterations
         screening = 0 < screen < cfg.max_iterations
+        fits = []  # [score, result, T_est, guess_xyz] of each turned guess
         for guess_velocity, init in self.motion.turn_guesses(stamp_ns, retry=True):
             guess_xyz = deskewed_as(guess_velocity)
-            guess = to_cloud(guess_xyz)
-            result = self.icp.register(guess, target, init, cfg.max_correspondence_distance_m,
+            result = self.icp.register(to_cloud(guess_xyz), target, init,
+                                       cfg.max_correspondence_distance_m,
                                        max_iterations=screen if screening else None)
-            T_est, fitness = np.asarray(result.transformation), float(result.fitness)
-            score = self._fit_score(guess_xyz, T_est, fitness)
-            if screening:
-                if score < match_score:
-                    continue  # screened out: no better than the match after `screen` steps
-                if getattr(result, 'n_iterations', screen) >= screen:  # not converged yet
-                    # ICP carries on from where it stopped: the full budget's iterates.
-                    result = self.icp.register(guess, target, T_est,
-                                               cfg.max_correspondence_distance_m,
-                                               max_iterations=cfg.max_iterations - screen)
-                    T_est, fitness = np.asarray(result.transformation), float(result.fitness)
-                    score = self._fit_score(guess_xyz, T_est, fitness)
+            T_est = np.asarray(result.transformation)
+            fits.append([self._fit_score(guess_xyz, T_est, float(result.fitness)), result,
+                         T_est, guess_xyz])
+        if screening and fits:
+            fits = self._carried_on(fits, match_score, screen)
+        best = None
+        for score, result, T_est, guess_xyz in fits:
             if (score < match_score + cfg.turn_check_fitness_margin
                     or (best is not None and score <= best[0])
-                    or self.trust.refusal(T_est, fitness, T_pred, stamp_ns) is not None):
+                    or self.trust.refusal(T_est, float(result.fitness), T_pred,
+                                          stamp_ns) is not None):
                 continue
             best = (score, result, T_est, guess_xyz)
         if best is None:
@@ -138,6 +134,26 @@ class Recovery:
         if match.status == 'recovered':  # re-acquisition keeps the velocity it implies
             velocity = self._implied_or(velocity, stamp_ns, T_est)
         return self._fitted(match.status, result, T_est, source_xyz, target, velocity)
+
+    def _carried_on(self, fits: list, match_score: float, screen: int) -> list:
+        """The screened turned fits that go on to the full budget (from where they stopped):
+        the best one, and any that already fit as well as the match. A fit that turns out
+        right can start far below the match (edge drive 224, scan 1262: 0.36 after 10
+        iterations, 0.61 after 30, against the match's 0.57)."""
+        cfg = self.config
+        top = max(range(len(fits)), key=lambda k: fits[k][0])
+        kept = []
+        for k, (score, result, T_est, guess_xyz) in enumerate(fits):
+            if k != top and score < match_score:
+                continue
+            if getattr(result, 'n_iterations', screen) >= screen:  # not converged yet
+                result = self.icp.register(to_cloud(guess_xyz), self.local_map.cloud, T_est,
+                                           cfg.max_correspondence_distance_m,
+                                           max_iterations=cfg.max_iterations - screen)
+                T_est = np.asarray(result.transformation)
+                score = self._fit_score(guess_xyz, T_est, float(result.fitness))
+            kept.append([score, result, T_est, guess_xyz])
+        return kept
 
     def reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
                    retry: bool = False) -> Match:

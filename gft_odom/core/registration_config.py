@@ -201,13 +201,13 @@ class RegistrationConfig:
     # fits 0.68 against 0.57 for the missed one (edge drive 227, docs/registration.md,
     # session 25). Edge drives 222 / 227: 0.171 / 7.52 -> 0.107 / 2.60 m, the others unchanged.
     turn_check_gate_m: float = 0.3
-    # The turn check first matches each turned guess for this many ICP iterations and
-    # carries on (to max_iterations in all) only with those that then fit at least as well
-    # as the match it checks (by the score above); 0: every guess to max_iterations. Turned
-    # ICPs start 0.1-0.2 rad off and 80-90 % of them run to the cap (~25 ms each, four a
-    # check: the scans over 100 ms). On edge drives 221 / 222 a screen of 10 iterations keeps
-    # every check's outcome of the full budget (82 checks) and continues 0.4-0.6 guesses a
-    # check (docs/registration.md, session 26).
+    # The turn check first matches each turned guess for this many ICP iterations; only the
+    # best of them, and any that then fit at least as well as the match it checks (by the
+    # score above), carry on to max_iterations in all; 0: every guess to max_iterations.
+    # Turned ICPs start 0.1-0.2 rad off and 80-90 % of them run to the cap (~25 ms each,
+    # four a check: the scans over 100 ms). On edge drives 221-224 this keeps every check's
+    # outcome of the full budget (158 checks), carrying on 1.1-1.3 guesses a check
+    # (docs/registration.md, session 26).
     turn_check_screen_iterations: int = 10
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:

@@ -1113,14 +1113,17 @@ def test_with_a_gate_the_turn_check_compares_fits_by_their_points_near_the_map(
     assert result.fitness == pytest.approx(0.90 if replaced else 0.80)
 
 
-@pytest.mark.parametrize('screen', [10, 0])
-def test_the_turn_check_carries_on_only_with_guesses_that_fit_as_well_as_the_match(
-        drive, screen):
+@pytest.mark.parametrize('screen, screened_fitness, carried_on', [
+    (10, (0.70, 0.85, 0.70, 0.85), (1, 3)),  # those fitting as well as the match (0.80)
+    (10, (0.50, 0.60, 0.75, 0.55), (2,)),  # none does: the best one alone
+    (0, None, ())])
+def test_the_turn_check_carries_on_only_the_best_screened_guesses(
+        drive, screen, screened_fitness, carried_on):
     """turn_check_screen_iterations: each turned guess is matched for that many iterations;
-    only those then fitting at least as well as the match go on, from where they stopped, for
-    the rest of max_iterations. The ICP here reports 0.80 from the prediction, 0.70 / 0.85
-    for alternate turned guesses after the screen, 0.90 once carried on (0: no screen, every
-    guess to the full budget at 0.85)."""
+    the best of them and those then fitting at least as well as the match go on, from where
+    they stopped, for the rest of max_iterations. The ICP here reports 0.80 from the
+    prediction, `screened_fitness` for the guesses after the screen and 0.90 once carried on
+    (0: no screen, every guess to the full budget at 0.85)."""
     reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=0.0,
                                turn_check_screen_iterations=screen)
     real_register, calls = reg.icp.register, []
@@ -1131,8 +1134,8 @@ def test_the_turn_check_carries_on_only_with_guesses_that_fit_as_well_as_the_mat
         n_screened = sum(1 for _, b, _ in calls if b == screen)
         if not calls:
             fitness = 0.80
-        elif budget == screen:
-            fitness = 0.70 if n_screened % 2 == 0 else 0.85
+        elif screen and budget == screen:
+            fitness = screened_fitness[n_screened]
         else:
             fitness = 0.90 if screen else 0.85
         T = np.asarray(init, dtype=float).copy()
@@ -1151,10 +1154,9 @@ def test_the_turn_check_carries_on_only_with_guesses_that_fit_as_well_as_the_mat
         assert result.fitness == pytest.approx(0.85)
         return
     full = RegistrationConfig().max_iterations
-    # Guesses 1 and 3 fit as well as the match after the screen and carry on; 0 and 2 stop.
-    assert budgets == [screen, screen, full - screen, screen, screen, full - screen]
-    for k in (2, 5):  # each carries on from where its screen stopped
-        np.testing.assert_array_equal(calls[k + 1][0], calls[k][2])
+    assert budgets == [screen] * 4 + [full - screen] * len(carried_on)
+    for call, guess in zip(calls[5:], carried_on):  # each from where its screen stopped
+        np.testing.assert_array_equal(call[0], calls[1 + guess][2])
     assert result.fitness == pytest.approx(0.90)
 
 
