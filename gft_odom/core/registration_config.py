@@ -202,12 +202,12 @@ class RegistrationConfig:
     # session 25). Edge drives 222 / 227: 0.171 / 7.52 -> 0.107 / 2.60 m, the others unchanged.
     turn_check_gate_m: float = 0.3
     # The turn check first matches each turned guess for this many ICP iterations; only the
-    # best of them, and any that then fit at least as well as the match it checks (by the
-    # score above), carry on to max_iterations in all; 0: every guess to max_iterations.
+    # better half of them, and any that then fit at least as well as the match it checks (by
+    # the score above), carry on to max_iterations in all; 0: every guess to max_iterations.
     # Turned ICPs start 0.1-0.2 rad off and 80-90 % of them run to the cap (~25 ms each,
-    # four a check: the scans over 100 ms). On edge drives 221-224 this keeps every check's
-    # outcome of the full budget (158 checks), carrying on 1.1-1.3 guesses a check
-    # (docs/registration.md, session 26).
+    # four a check: the scans over 100 ms). Edge drives 221-224 and 227: every check's outcome
+    # of the full budget kept (211 checks), ~2 guesses of 4 carried on; only the best one
+    # lost 227 at a corner (docs/registration.md, session 26).
     turn_check_screen_iterations: int = 10
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:

@@ -1114,14 +1114,15 @@ def test_with_a_gate_the_turn_check_compares_fits_by_their_points_near_the_map(
 
 
 @pytest.mark.parametrize('screen, screened_fitness, carried_on', [
-    (10, (0.70, 0.85, 0.70, 0.85), (1, 3)),  # those fitting as well as the match (0.80)
-    (10, (0.50, 0.60, 0.75, 0.55), (2,)),  # none does: the best one alone
+    (10, (0.70, 0.85, 0.70, 0.85), (1, 3)),  # the better half, both as good as the match
+    (10, (0.50, 0.60, 0.75, 0.55), (1, 2)),  # none fits as well: the better half
+    (10, (0.82, 0.85, 0.75, 0.81), (0, 1, 3)),  # three fit as well as the match (0.80)
     (0, None, ())])
-def test_the_turn_check_carries_on_only_the_best_screened_guesses(
+def test_the_turn_check_carries_on_only_the_better_screened_guesses(
         drive, screen, screened_fitness, carried_on):
     """turn_check_screen_iterations: each turned guess is matched for that many iterations;
-    the best of them and those then fitting at least as well as the match go on, from where
-    they stopped, for the rest of max_iterations. The ICP here reports 0.80 from the
+    the better half of them and those then fitting at least as well as the match go on, from
+    where they stopped, for the rest of max_iterations. The ICP here reports 0.80 from the
     prediction, `screened_fitness` for the guesses after the screen and 0.90 once carried on
     (0: no screen, every guess to the full budget at 0.85)."""
     reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=0.0,
