@@ -37,6 +37,16 @@ class Match(NamedTuple):
     velocity: np.ndarray | None = None  # re-acquisition: the velocity it leaves behind
 
 
+class TurnedFit(NamedTuple):
+    """One turned guess of the turn check, as far as it has been matched."""
+
+    score: float  # Recovery._fit_score
+    result: object  # the ICP result
+    T_world_sensor: np.ndarray
+    source_xyz: np.ndarray  # the scan deskewed as the guess
+    source: object  # the same as an open3d cloud (what ICP is given)
+
+
 def fitted_match(status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
                  matched_target: np.ndarray, velocity: np.ndarray | None = None) -> Match:
     """A trusted Match of an ICP `result` (pose `T_est`): its fitness, RMSE and information
@@ -107,54 +117,57 @@ class Recovery:
         match_score = self._fit_score(source_xyz, match.T_world_sensor, match.fitness)
         screen = cfg.turn_check_screen_iterations
         screening = 0 < screen < cfg.max_iterations
-        fits = []  # [score, result, T_est, guess_xyz] of each turned guess
+        fits = []
         for guess_velocity, init in self.motion.turn_guesses(stamp_ns, retry=True):
             guess_xyz = deskewed_as(guess_velocity)
-            result = self.icp.register(to_cloud(guess_xyz), target, init,
-                                       cfg.max_correspondence_distance_m,
-                                       max_iterations=screen if screening else None)
-            T_est = np.asarray(result.transformation)
-            fits.append([self._fit_score(guess_xyz, T_est, float(result.fitness)), result,
-                         T_est, guess_xyz])
+            fits.append(self._turned_fit(guess_xyz, to_cloud(guess_xyz), init,
+                                         screen if screening else None))
         if screening and fits:
             fits = self._carried_on(fits, match_score, screen)
         best = None
-        for score, result, T_est, guess_xyz in fits:
-            if (score < match_score + cfg.turn_check_fitness_margin
-                    or (best is not None and score <= best[0])
-                    or self.trust.refusal(T_est, float(result.fitness), T_pred,
-                                          stamp_ns) is not None):
+        for fit in fits:
+            if (fit.score < match_score + cfg.turn_check_fitness_margin
+                    or (best is not None and fit.score <= best.score)
+                    or self.trust.refusal(fit.T_world_sensor, float(fit.result.fitness),
+                                          T_pred, stamp_ns) is not None):
                 continue
-            best = (score, result, T_est, guess_xyz)
+            best = fit
         if best is None:
             return match
         self.n_turns_found += 1
-        _, result, T_est, source_xyz = best
         velocity = match.velocity
         if match.status == 'recovered':  # re-acquisition keeps the velocity it implies
-            velocity = self._implied_or(velocity, stamp_ns, T_est)
-        return self._fitted(match.status, result, T_est, source_xyz, target, velocity)
+            velocity = self._implied_or(velocity, stamp_ns, best.T_world_sensor)
+        return self._fitted(match.status, best.result, best.T_world_sensor, best.source_xyz,
+                            target, velocity)
 
-    def _carried_on(self, fits: list, match_score: float, screen: int) -> list:
+    def _turned_fit(self, source_xyz: np.ndarray, source, init: np.ndarray,
+                    max_iterations: int | None) -> TurnedFit:
+        """ICP of a turned guess's scan from `init` (None: the usual budget), scored."""
+        result = self.icp.register(source, self.local_map.cloud, init,
+                                   self.config.max_correspondence_distance_m,
+                                   max_iterations=max_iterations)
+        T_est = np.asarray(result.transformation)
+        return TurnedFit(self._fit_score(source_xyz, T_est, float(result.fitness)), result,
+                         T_est, source_xyz, source)
+
+    def _carried_on(self, fits: list[TurnedFit], match_score: float,
+                    screen: int) -> list[TurnedFit]:
         """The screened turned fits that go on to the full budget (from where they stopped):
         the better half, and any that already fit as well as the match. The ranking after the
         screen is a rough one: a fit that turns out right can start far below the match and
         below another guess (edge drive 227, scan 474: 0.36 after 10 iterations, second of
         four, 0.47 after 30 against the match's 0.44)."""
-        cfg = self.config
-        ranked = sorted(range(len(fits)), key=lambda k: -fits[k][0])
+        ranked = sorted(range(len(fits)), key=lambda k: -fits[k].score)
         better_half = set(ranked[:(len(fits) + 1) // 2])
         kept = []
-        for k, (score, result, T_est, guess_xyz) in enumerate(fits):
-            if k not in better_half and score < match_score:
+        for k, fit in enumerate(fits):
+            if k not in better_half and fit.score < match_score:
                 continue
-            if getattr(result, 'n_iterations', screen) >= screen:  # not converged yet
-                result = self.icp.register(to_cloud(guess_xyz), self.local_map.cloud, T_est,
-                                           cfg.max_correspondence_distance_m,
-                                           max_iterations=cfg.max_iterations - screen)
-                T_est = np.asarray(result.transformation)
-                score = self._fit_score(guess_xyz, T_est, float(result.fitness))
-            kept.append([score, result, T_est, guess_xyz])
+            if getattr(fit.result, 'n_iterations', screen) >= screen:  # not converged yet
+                fit = self._turned_fit(fit.source_xyz, fit.source, fit.T_world_sensor,
+                                       self.config.max_iterations - screen)
+            kept.append(fit)
         return kept
 
     def reacquire(self, source_xyz: np.ndarray, T_pred: np.ndarray, stamp_ns: int,
