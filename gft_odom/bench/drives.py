@@ -63,6 +63,9 @@ EDGE_CONFIRM_DRIVES = (Drive('edge_lawnmower', 223, 280.0), Drive('edge_lawnmowe
 # Seeds 225-228, added in session 24 after the turned guesses' own deskew was chosen on edge
 # drives 221-224: edge routes no choice was made on.
 EDGE_NEW_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (225, 226, 227, 228))
+# Seeds 241-244, added in session 27 after the turn check's screen was chosen on edge drives
+# 221-224 and 227: edge routes no choice was made on.
+EDGE_SCREEN_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (241, 242, 243, 244))
 
 
 def default_cache_dir() -> Path:
