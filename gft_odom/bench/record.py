@@ -47,7 +47,8 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'turn_check_fitness_margin'): 0.03,
                       ('registration', 'turn_guess_deskew'): False,
                       ('registration', 'turn_check_gate_m'): 0.0,
-                      ('registration', 'turn_check_screen_iterations'): 0}
+                      ('registration', 'turn_check_screen_iterations'): 0,
+                      ('registration', 'turn_check_share_ratio'): 0.0}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

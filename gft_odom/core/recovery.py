@@ -9,6 +9,7 @@ docs/registration.md has the drives behind each rule.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.local_map import LocalMap, to_cloud
+from gft_odom.core.trust import RECENT_FITNESS_MIN, RECENT_FITNESS_WINDOW
 from gft_odom.core.uncertainty import icp_information
 
 if TYPE_CHECKING:
@@ -69,9 +71,11 @@ class Recovery:
         self.reset()
 
     def reset(self) -> None:
-        """turn_check: the matches checked from turned guesses, and those a turn replaced."""
+        """turn_check: the matches checked from turned guesses, and those a turn replaced;
+        the shares near the map of the recent trusted matches (`turn_check_share_ratio`)."""
         self.n_turn_checks = 0
         self.n_turns_found = 0
+        self.recent_share: deque[float] = deque(maxlen=RECENT_FITNESS_WINDOW)
 
     def _fitted(self, status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
                 target, velocity: np.ndarray | None = None) -> Match:
@@ -96,12 +100,21 @@ class Recovery:
             transform_points(T_world_sensor, source_xyz), distance_upper_bound=gate_m)
         return float(np.mean(np.isfinite(distance)))
 
-    def turn_check_due(self, match: Match) -> bool:
-        """A trusted match that fits poorly for the recent matches (`turn_check`)."""
-        return (self.config.turn_check and self.config.mode == 'default'
-                and match.status in ('ok', 'recovered')
-                and self.trust.below_recent(match.fitness,
-                                            self.config.recovery_turn_relative_fitness))
+    def turn_check_due(self, match: Match, source_xyz: np.ndarray) -> bool:
+        """A trusted match (of `source_xyz`) that fits poorly for the recent matches
+        (`turn_check`): by ICP's fitness, or (`turn_check_share_ratio`) by its share of points
+        near the map."""
+        cfg = self.config
+        if not (cfg.turn_check and cfg.mode == 'default'
+                and match.status in ('ok', 'recovered')):
+            return False
+        due = self.trust.below_recent(match.fitness, cfg.recovery_turn_relative_fitness)
+        if cfg.turn_check_share_ratio > 0.0:
+            share = self._fit_score(source_xyz, match.T_world_sensor, match.fitness)
+            due = due or (len(self.recent_share) >= RECENT_FITNESS_MIN and share
+                          < cfg.turn_check_share_ratio * float(np.median(self.recent_share)))
+            self.recent_share.append(share)
+        return due
 
     def turn_check(self, source_xyz: np.ndarray,
                    deskewed_as: Callable[[np.ndarray], np.ndarray], T_pred: np.ndarray,

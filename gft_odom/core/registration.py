@@ -385,7 +385,7 @@ class ScanRegistration:
                     and self.config.retry_failed_match):
                 retried = self.recovery.reacquire(sweep.source_xyz, T_pred, stamp_ns, retry=True)
                 match = retried if retried.status == 'recovered' else match
-            if self.recovery.turn_check_due(match):
+            if self.recovery.turn_check_due(match, sweep.source_xyz):
                 match = self.recovery.turn_check(sweep.source_xyz,
                                                  partial(self._deskewed_as, sweep), T_pred,
                                                  stamp_ns, match)

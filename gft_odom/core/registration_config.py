@@ -209,6 +209,12 @@ class RegistrationConfig:
     # of the full budget kept (211 checks), ~2 guesses of 4 carried on; only the best one
     # lost 227 at a corner (docs/registration.md, session 26).
     turn_check_screen_iterations: int = 10
+    # A trusted match whose share of points within turn_check_gate_m of the map is below
+    # this x the median share of the recent matches is checked too (0: only the fitness
+    # trigger above). At a turn's onset in open ground the ground keeps ICP's fitness near
+    # the recent ones while the match is already turned too little: edge drive 226, scan 751
+    # (0.20 rad behind), fitness 0.96 x the recent median, share within 0.3 m 0.86 x.
+    turn_check_share_ratio: float = 0.0
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
     # the same trajectory, 0.74-0.87x the latency median on the held-out drives), 'open3d'
@@ -355,9 +361,12 @@ class RegistrationConfig:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')
         for name in ('min_fitness', 'min_relative_fitness', 'map_anchor_smoothness',
                      'recovery_turn_relative_fitness', 'map_anchor_rough_any_side_share',
-                     'turn_check_fitness_margin'):
+                     'turn_check_fitness_margin', 'turn_check_share_ratio'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
+        if self.turn_check_share_ratio > 0.0 and self.turn_check_gate_m <= 0.0:
+            raise ConfigError('turn_check_share_ratio needs turn_check_gate_m > 0 (the share '
+                              'is of the points within that distance of the map)')
         if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
             raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
                               f'{self.map_anchor_rough_view_deg}')

@@ -1161,6 +1161,42 @@ def test_the_turn_check_carries_on_only_the_better_screened_guesses(
     assert result.fitness == pytest.approx(0.90)
 
 
+@pytest.mark.parametrize('share_ratio, offset_rad, checked', [
+    (0.0, 0.15, False),  # only the fitness trigger: the fitness is as recent ones'
+    (0.9, 0.15, True),  # few points near the map for the recent matches: checked
+    (0.9, 0.0, False)])  # the match where the recent ones were: not checked
+def test_a_match_with_few_points_near_the_map_is_turn_checked(
+        drive, share_ratio, offset_rad, checked):
+    """turn_check_share_ratio: at a turn's onset in open ground the ground keeps ICP's
+    fitness while the match is off; its share of points within turn_check_gate_m of the map
+    falls. Here ICP's match from the prediction reports its real fitness at a pose turned
+    by `offset_rad`."""
+    # A keyframe every scan: the share does not fall as the scan leaves its keyframe.
+    reg = _moving_registration(drive, n_scans=8, turn_check_share_ratio=share_ratio,
+                               keyframe_distance_m=0.01)
+    assert len(reg.recovery.recent_share) == (7 if share_ratio else 0)  # scans 1-7 matched
+    assert reg.n_turn_checks == 0
+    real_register, n_calls = reg.icp.register, []
+
+    def scripted(source, target, init, distance_m, **kwargs):
+        result = real_register(source, target, init, distance_m, **kwargs)
+        n_calls.append(1)
+        T = np.asarray(result.transformation).copy()
+        if len(n_calls) == 1:
+            T[:3, :3] = T[:3, :3] @ Rotation.from_euler('z', offset_rad).as_matrix()
+        return IcpResult(T, result.fitness, result.inlier_rmse,
+                         np.asarray(result.correspondence_set), None, 1)
+
+    reg.icp.register = scripted
+    scan = drive[8]
+    recent = float(np.median(reg.trust.recent_fitness))
+    result = reg.register(scan['points'], scan['stamp_ns'], scan['time'])
+    assert result.status == 'ok' and result.fitness >= 0.95 * recent  # no fitness trigger
+    assert reg.n_turn_checks == (1 if checked else 0)
+    with pytest.raises(ConfigError, match='turn_check_gate_m'):
+        RegistrationConfig(turn_check_share_ratio=0.9, turn_check_gate_m=0.0).validate()
+
+
 def onset_of_turn(onset_s: float, speed_mps: float = 1.5, yaw_rate_rps: float = 2.0):
     """Straight along x until `onset_s`, then a turn at `yaw_rate_rps` (a headland corner)."""
     def pose_at(times_s):
