@@ -213,7 +213,10 @@ class RegistrationConfig:
     # this x the median share of the recent matches is checked too (0: only the fitness
     # trigger above). At a turn's onset in open ground the ground keeps ICP's fitness near
     # the recent ones while the match is already turned too little: edge drive 226, scan 751
-    # (0.20 rad behind), fitness 0.96 x the recent median, share within 0.3 m 0.86 x.
+    # (0.20 rad behind), fitness 0.96 x the recent median, share within 0.3 m 0.86 x. At 0.9
+    # the mean ATE of edge drives 221-228 went 0.86 -> 1.00 m (better on two, worse on three;
+    # 226 unchanged: no turned fit beat its match) and training drive 118 0.094 -> 0.085 m:
+    # not the default (docs/registration.md, session 27).
     turn_check_share_ratio: float = 0.0
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
