@@ -205,10 +205,12 @@ class RegistrationConfig:
     # better half of them, and any that then fit at least as well as the match it checks (by
     # the score above), carry on to max_iterations in all; 0: every guess to max_iterations.
     # Turned ICPs start 0.1-0.2 rad off and 80-90 % of them run to the cap (~25 ms each,
-    # four a check: the scans over 100 ms). Edge drives 221-224 and 227: every check's outcome
-    # of the full budget kept (211 checks), ~2 guesses of 4 carried on; only the best one
-    # lost 227 at a corner (docs/registration.md, session 26).
-    turn_check_screen_iterations: int = 10
+    # four a check: the scans over 100 ms). A latency option, meant to keep every pose: on
+    # edge drives 221-224 and 227 (where the rule was chosen) and on seven of eight edge
+    # seeds never used it does, but on edge 252 it stopped the guess that would have won and
+    # lost track (0.178 -> 17.6 m ATE). Off by default since session 27
+    # (docs/registration.md, sessions 26 and 27).
+    turn_check_screen_iterations: int = 0
     # A trusted match whose share of points within turn_check_gate_m of the map is below
     # this x the median share of the recent matches is checked too (0: only the fitness
     # trigger above). At a turn's onset in open ground the ground keeps ICP's fitness near
