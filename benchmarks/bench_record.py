@@ -2,7 +2,8 @@
 
 Usage:
   .venv/bin/python benchmarks/bench_record.py
-      [--drives held-out|training|new-held-out|edge|confirm|edge-confirm|edge-new|edge-screen]
+      [--drives held-out|training|new-held-out|edge|confirm|edge-confirm|edge-new|
+                edge-screen|edge-late]
       [--jobs N]
       [--cache DIR]
       [--only LABEL ...] [--out benchmarks/results]
@@ -24,6 +25,7 @@ from gft_odom.bench.drives import (
     CONFIRM_DRIVES,
     EDGE_CONFIRM_DRIVES,
     EDGE_DRIVES,
+    EDGE_LATE_DRIVES,
     EDGE_NEW_DRIVES,
     EDGE_SCREEN_DRIVES,
     HELD_OUT_DRIVES,
@@ -40,7 +42,8 @@ RESULTS = Path(__file__).resolve().parent / 'results'
 DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
               'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
               'confirm': CONFIRM_DRIVES, 'edge-confirm': EDGE_CONFIRM_DRIVES,
-              'edge-new': EDGE_NEW_DRIVES, 'edge-screen': EDGE_SCREEN_DRIVES}
+              'edge-new': EDGE_NEW_DRIVES, 'edge-screen': EDGE_SCREEN_DRIVES,
+              'edge-late': EDGE_LATE_DRIVES}
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels

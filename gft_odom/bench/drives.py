@@ -66,6 +66,9 @@ EDGE_NEW_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (225, 2
 # Seeds 241-244, added in session 27 after the turn check's screen was chosen on edge drives
 # 221-224 and 227: edge routes no choice was made on.
 EDGE_SCREEN_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (241, 242, 243, 244))
+# Seeds 251-254, added later in session 27 (the screen held out again; the frequency's share
+# at the edge): edge routes no choice was made on.
+EDGE_LATE_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (251, 252, 253, 254))
 
 
 def default_cache_dir() -> Path:
