@@ -17,7 +17,7 @@ import numpy as np
 
 from gft_odom.core.geometry import transform_points
 from gft_odom.core.local_map import LocalMap, to_cloud
-from gft_odom.core.trust import RECENT_FITNESS_MIN, RECENT_FITNESS_WINDOW
+from gft_odom.core.trust import RECENT_FITNESS_WINDOW, below_recent_median
 from gft_odom.core.uncertainty import icp_information
 
 if TYPE_CHECKING:
@@ -111,8 +111,8 @@ class Recovery:
         due = self.trust.below_recent(match.fitness, cfg.recovery_turn_relative_fitness)
         if cfg.turn_check_share_ratio > 0.0:
             share = self._fit_score(source_xyz, match.T_world_sensor, match.fitness)
-            due = due or (len(self.recent_share) >= RECENT_FITNESS_MIN and share
-                          < cfg.turn_check_share_ratio * float(np.median(self.recent_share)))
+            due = due or below_recent_median(share, self.recent_share,
+                                             cfg.turn_check_share_ratio)
             self.recent_share.append(share)
         return due
 

@@ -20,6 +20,12 @@ RECENT_FITNESS_WINDOW = 10
 RECENT_FITNESS_MIN = 3
 
 
+def below_recent_median(value: float, recent, ratio: float) -> bool:
+    """Below `ratio` x the median of `recent` (False while it holds fewer than
+    RECENT_FITNESS_MIN values to tell)."""
+    return len(recent) >= RECENT_FITNESS_MIN and value < ratio * float(np.median(recent))
+
+
 class TrustPolicy:
     """Whether a match is trusted (its fitness, the motion bounds, the jump from the
     prediction), and the run of fallbacks that ends tracking.
@@ -47,8 +53,7 @@ class TrustPolicy:
     def below_recent(self, fitness: float, ratio: float) -> bool:
         """Below `ratio` x the median fitness of the recent trusted matches (False while
         there are too few to tell)."""
-        return (len(self.recent_fitness) >= RECENT_FITNESS_MIN
-                and fitness < ratio * float(np.median(self.recent_fitness)))
+        return below_recent_median(fitness, self.recent_fitness, ratio)
 
     def trusted(self, fitness: float | None) -> None:
         """A trusted pose ends the fallback run; a match's `fitness` joins the recent ones."""
