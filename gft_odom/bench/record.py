@@ -48,7 +48,10 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'turn_guess_deskew'): False,
                       ('registration', 'turn_check_gate_m'): 0.0,
                       ('registration', 'turn_check_screen_iterations'): 0,
-                      ('registration', 'turn_check_share_ratio'): 0.0}
+                      ('registration', 'turn_check_share_ratio'): 0.0,
+                      ('registration', 'reacquisition_by_share'): False,
+                      ('registration', 'reacquisition_beats_refused'): False,
+                      ('registration', 'plausible_from_previous_trusted'): False}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

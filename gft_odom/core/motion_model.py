@@ -7,10 +7,12 @@ can make, and a match far from the prediction is a jump.
 
 Everything is measured from the last trusted pose over the time since it, never from a
 fallback's extrapolated pose: after fallbacks the previous pose is only a prediction, and its
-error is not this scan's motion. After a gap or a run of fallbacks the velocity is dropped (a
-stale velocity would throw every later guess off) and re-acquisition is pending; the velocity
-from before the loss seeds its guesses. The twists of the last trusted scans give deskew a
-velocity with the ICP noise averaged out.
+error is not this scan's motion. A motion beyond the bounds from it may still be plausible
+from the trusted pose before it (`plausible_from_previous_trusted`): one trusted match that
+slid along the track must not lock the true next pose out. After a gap or a run of fallbacks
+the velocity is dropped (a stale velocity would throw every later guess off) and
+re-acquisition is pending; the velocity from before the loss seeds its guesses. The twists of
+the last trusted scans give deskew a velocity with the ICP noise averaged out.
 """
 
 from __future__ import annotations
@@ -87,6 +89,8 @@ class MotionModel:
         # and re-acquisition are measured from here, over the time since it.
         self.T_world_trusted = np.eye(4)
         self.trusted_stamp_ns: int | None = None
+        # The trusted pose before it, and its stamp (`plausible_from_previous_trusted`).
+        self.previous_trusted: tuple[np.ndarray, int] | None = None
         # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
         self.velocity = np.zeros(6)
         # The velocities of the last trusted scans and the time each spans: deskew assumes
@@ -158,6 +162,38 @@ class MotionModel:
         return (distance_m <= cfg.max_speed_mps * slack
                 and angle_rad <= cfg.max_yaw_rate_rps * slack)
 
+    def plausible_since_trusted(self, stamp_ns: int, T_world_est: np.ndarray) -> bool:
+        """Could the robot have reached `T_world_est` from the last trusted pose, or
+        (`plausible_from_previous_trusted`) from the trusted pose before it? A match that
+        slid along the track leaves a last trusted pose from which the true next one looks
+        beyond the bounds; the one before it is a second reference. The rates reported are
+        from the last trusted pose."""
+        if self.is_plausible(*self.since_trusted(stamp_ns, T_world_est)):
+            return True
+        return self._from_previous_trusted(stamp_ns, T_world_est) is not None
+
+    def _from_previous_trusted(self, stamp_ns: int,
+                               T_world_est: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """The motion from the trusted pose before the last to `T_world_est` and the time
+        it took, when it is within the bounds, the option is on, that pose is within a gap,
+        and `stamp_ns` is at least half a scan period after the last trusted pose (sooner, a
+        scan is more likely a copy than the next sweep: the fault suite's mirrored copies,
+        30 ms after a scan, are judged from that pose alone). None otherwise. Leaves the
+        rates a refusal reports as they were."""
+        if not self.config.plausible_from_previous_trusted or self.previous_trusted is None:
+            return None
+        if self._elapsed_since_trusted(stamp_ns) < 0.5 * self.config.scan_period_s:
+            return None
+        T_world_ref, ref_stamp_ns = self.previous_trusted
+        elapsed_s = (int(stamp_ns) - ref_stamp_ns) * 1e-9
+        if not 0.0 < elapsed_s <= self.config.max_gap_s:
+            return None
+        rates = self.last_implied_rates
+        motion = invert_transform(T_world_ref) @ T_world_est
+        plausible = self.is_plausible(motion, elapsed_s)
+        self.last_implied_rates = rates
+        return (motion, elapsed_s) if plausible else None
+
     def _periods(self, span_s):
         """`span_s` in scan periods, at least MIN_PERIOD_SHARE (scalar or array)."""
         return np.maximum(MIN_PERIOD_SHARE, np.asarray(span_s) / self.config.scan_period_s)
@@ -179,6 +215,15 @@ class MotionModel:
         """The capped velocity of the motion from the last trusted pose to `T_world_est`; None
         over no time or a gap (a mean over a gap is no velocity)."""
         motion, elapsed_s = self.since_trusted(stamp_ns, T_world_est)
+        if self.config.plausible_from_previous_trusted:
+            # Beyond the bounds from the last trusted pose but within them from the one
+            # before (`plausible_since_trusted`): the motion since that one.
+            rates = self.last_implied_rates  # what a refusal reports stays the match's
+            beyond = not self.is_plausible(motion, elapsed_s)
+            self.last_implied_rates = rates
+            previous = self._from_previous_trusted(stamp_ns, T_world_est) if beyond else None
+            if previous is not None:
+                motion, elapsed_s = previous
         if 0.0 < elapsed_s <= self.config.max_gap_s:
             return self.capped(twist_of(motion, elapsed_s))
         return None
@@ -255,6 +300,8 @@ class MotionModel:
         (`recovered`) to `recovered_velocity` (its winning guess, or a retry's motion)."""
         velocity = self.implied_velocity(stamp_ns, T_world_new) if status == 'ok' else None
         span_s = self.since_trusted(stamp_ns, T_world_new)[1]
+        if self.trusted_stamp_ns is not None:
+            self.previous_trusted = (self.T_world_trusted, self.trusted_stamp_ns)
         self.T_world_trusted = T_world_new.copy()
         self.trusted_stamp_ns = int(stamp_ns)
         if velocity is not None:

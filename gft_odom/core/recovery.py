@@ -100,6 +100,14 @@ class Recovery:
             transform_points(T_world_sensor, source_xyz), distance_upper_bound=gate_m)
         return float(np.mean(np.isfinite(distance)))
 
+    def _reacquisition_score(self, source_xyz: np.ndarray, T_world_sensor: np.ndarray,
+                             fitness: float) -> float:
+        """What re-acquisition compares its fits by: ICP's `fitness`, or
+        (`reacquisition_by_share`) the turn check's score."""
+        if not self.config.reacquisition_by_share:
+            return fitness
+        return self._fit_score(source_xyz, T_world_sensor, fitness)
+
     def turn_check_due(self, match: Match, source_xyz: np.ndarray) -> bool:
         """A trusted match (of `source_xyz`) that fits poorly for the recent matches
         (`turn_check`): by ICP's fitness, or (`turn_check_share_ratio`) by its share of points
@@ -188,10 +196,11 @@ class Recovery:
         """Re-acquire against the map from a few initial guesses (the motion model's, from
         the last trusted pose). From each: a coarse ICP with a widened correspondence
         distance, then the normal one with more iterations. The plausible fit with the best
-        fitness wins; no jump check (the guesses are rough). Only when no plain guess gives
-        one, and their best fit is below `recovery_turn_relative_fitness` x the recent ones, are
-        turned guesses tried; a turned fit must fit better than every plain guess's, refused
-        ones included.
+        score (`_reacquisition_score`) wins; no jump check (the guesses are rough). Only when
+        no plain guess gives one, and their best fit is below `recovery_turn_relative_fitness`
+        x the recent ones, are turned guesses tried; a turned fit must fit better than every
+        plain guess's, refused ones included. With `reacquisition_beats_refused` no fit is
+        taken when one refused for the bounds or the jump scores clearly better.
 
         `retry`: a second chance for a scan whose match from the prediction failed, with the
         current velocity as the one before the loss; the fit must pass every check a match
@@ -200,8 +209,10 @@ class Recovery:
         cfg = self.config
         source, target = to_cloud(source_xyz), self.local_map.cloud
         wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
-        best, status = None, 'fallback_low_fitness'
+        best, best_score, status = None, -1.0, 'fallback_low_fitness'
         best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
+        best_plain_score = 0.0  # the same by the score fits are compared by
+        best_refused_score = -1.0  # of the fits refused for the bounds or the jump
         for turned in (False, True):
             if turned and (best is not None or not self.trust.below_recent(
                     best_plain_fitness, cfg.recovery_turn_relative_fitness)):
@@ -218,18 +229,28 @@ class Recovery:
                 T_est = np.asarray(result.transformation)
                 if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
                     continue
+                score = self._reacquisition_score(source_xyz, T_est, float(result.fitness))
                 if not turned:
                     best_plain_fitness = max(best_plain_fitness, float(result.fitness))
-                elif result.fitness <= best_plain_fitness:
+                    best_plain_score = max(best_plain_score, score)
+                elif score <= best_plain_score:
                     continue  # a turned guess that fits no better is a local minimum
-                if retry and (self.trust.relatively_unfit(float(result.fitness))
-                              or self.motion.jumped(T_pred, T_est, stamp_ns)):
+                if retry and self.trust.relatively_unfit(float(result.fitness)):
                     continue
-                if not self.motion.is_plausible(*self.motion.since_trusted(stamp_ns, T_est)):
+                if retry and self.motion.jumped(T_pred, T_est, stamp_ns):
+                    best_refused_score = max(best_refused_score, score)
+                    continue
+                if not self.motion.plausible_since_trusted(stamp_ns, T_est):
                     status = 'fallback_implausible'
+                    best_refused_score = max(best_refused_score, score)
                     continue
-                if best is None or result.fitness > best[0].fitness:
-                    best = (result, T_est, velocity)
+                if best is None or score > best_score:
+                    best, best_score = (result, T_est, velocity), score
+        if best is not None and cfg.reacquisition_beats_refused and (
+                best_score + cfg.turn_check_fitness_margin < best_refused_score):
+            # A fit that explains the scan clearly better was refused: the reference it was
+            # measured from (the last trusted pose) is the likelier error, not that fit.
+            best, status = None, 'fallback_implausible'
         if best is None:
             return Match(status, T_pred, 0.0, 0.0, None)
         result, T_est, velocity = best

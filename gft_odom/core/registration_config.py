@@ -220,6 +220,29 @@ class RegistrationConfig:
     # 226 unchanged: no turned fit beat its match) and training drive 118 0.094 -> 0.085 m:
     # not the default (docs/registration.md, session 27).
     turn_check_share_ratio: float = 0.0
+    # Re-acquisition (and the retry of a failed match) picks among its plausible fits by the
+    # turn check's score (the share of points within turn_check_gate_m of the map), not by
+    # ICP's fitness within max_correspondence_distance_m, which open ground gives any heading.
+    # False: by ICP's fitness. Edge drives 226 / 242 / 243: 1.81 / 15.0 / 3.69 ->
+    # 0.14 / 11.0 / 9.21 m ATE: not the default (docs/registration.md, session 28).
+    reacquisition_by_share: bool = False
+    # Re-acquisition (and the retry) gives up (a fallback) when its best fit scores below a
+    # fit it refused for the motion bounds or the jump by more than turn_check_fitness_margin:
+    # a match that slid along the track leaves a wrong last trusted pose, from which the true
+    # pose looks implausible and a poor, wrongly turned fit plausible (edge drive 242, scan
+    # 319: the right fit refused at share 0.79, one turned 0.34 rad wrong taken at 0.37).
+    # False: the best plausible fit is taken.
+    reacquisition_beats_refused: bool = True
+    # A match beyond the motion bounds from the last trusted pose is still plausible when it
+    # is within them from the trusted pose before that one (over the longer time), and its
+    # velocity is then the motion since that one; only for a scan at least half a period
+    # after the last trusted pose (sooner, it is more likely a copy). Near the speed bound
+    # (1.8 m/s against 2 m/s x 1.5) an along-track slide of 0.1 m in one trusted match makes
+    # the true next pose look beyond the bounds, and the refusals that follow drop the
+    # velocity (edge drive 226, scans 757-774). With the rule above, chosen on edge drives
+    # 221 / 226 / 242 / 243 (mean ATE 5.55 -> 0.89 m); on four new edge seeds 2.21 -> 0.09 m,
+    # training drives 0.0545 -> 0.0558 m (docs/registration.md, session 28).
+    plausible_from_previous_trusted: bool = True
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
     # the same trajectory, 0.74-0.87x the latency median on the held-out drives), 'open3d'
@@ -369,9 +392,10 @@ class RegistrationConfig:
                      'turn_check_fitness_margin', 'turn_check_share_ratio'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f'{name} must be in [0, 1], got {getattr(self, name)}')
-        if self.turn_check_share_ratio > 0.0 and self.turn_check_gate_m <= 0.0:
-            raise ConfigError('turn_check_share_ratio needs turn_check_gate_m > 0 (the share '
-                              'is of the points within that distance of the map)')
+        for name in ('turn_check_share_ratio', 'reacquisition_by_share'):
+            if getattr(self, name) and self.turn_check_gate_m <= 0.0:
+                raise ConfigError(f'{name} needs turn_check_gate_m > 0 (the share is of the '
+                                  'points within that distance of the map)')
         if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
             raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
                               f'{self.map_anchor_rough_view_deg}')

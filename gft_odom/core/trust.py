@@ -76,9 +76,8 @@ class TrustPolicy:
         if fitness < self.config.min_fitness or (self.config.mode == 'default'
                                                  and self.relatively_unfit(fitness)):
             return 'fallback_low_fitness'
-        moved, elapsed_s = self.motion.since_trusted(stamp_ns, T_est)
-        if not self.motion.is_plausible(moved, elapsed_s):
-            log.debug('ICP implies motion beyond the bounds over %.3f s', elapsed_s)
+        if not self.motion.plausible_since_trusted(stamp_ns, T_est):
+            log.debug('ICP implies motion beyond the bounds since the last trusted pose')
             return 'fallback_implausible'
         if self.motion.jumped(T_pred, T_est, stamp_ns):
             return 'fallback_diverged'

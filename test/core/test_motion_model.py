@@ -90,3 +90,24 @@ def test_turn_guesses_change_the_yaw_rate_either_way_capped():
     off = MotionModel(RegistrationConfig(recovery_yaw_guesses=0))
     off.trust(0, np.eye(4), 'first')
     assert off.turn_guesses(STEP_NS, retry=True) == []
+
+
+@pytest.mark.parametrize('second_reference', [False, True])
+def test_a_slid_trusted_pose_can_be_passed_over_by_the_one_before_it(second_reference):
+    """1.8 m/s along x; the second trusted pose slid 0.15 m back. The true third pose is
+    0.33 m from it in 0.1 s (beyond 0.3 m) but 0.36 m from the first in 0.2 s (within 0.6)."""
+    config = RegistrationConfig(plausible_from_previous_trusted=second_reference)
+    model = MotionModel(config)
+    model.trust(0, np.eye(4), 'first')
+    model.advance(0, np.eye(4))
+    slid = make_transform(None, [0.18 - 0.15, 0.0, 0.0])
+    model.trust(STEP_NS, slid, 'ok')
+    model.advance(STEP_NS, slid)
+    true_next = make_transform(None, [0.36, 0.0, 0.0])
+    assert model.plausible_since_trusted(2 * STEP_NS, true_next) is second_reference
+    assert model.last_implied_rates[0] == pytest.approx(3.3)  # from the last trusted pose
+    velocity = model.implied_velocity(2 * STEP_NS, true_next)
+    # From the first pose over 0.2 s: 1.8 m/s; from the slid one: 3.3 m/s, capped at 2.
+    assert velocity[3] == pytest.approx(1.8 if second_reference else 2.0)
+    # Far beyond the bounds from both: refused either way.
+    assert not model.plausible_since_trusted(2 * STEP_NS, make_transform(None, [0.9, 0, 0]))
