@@ -1279,35 +1279,53 @@ def test_rough_beam_shift_is_bounded():
     RegistrationConfig(rough_beam_shift_m=-0.1).validate()
 
 
-@pytest.mark.parametrize('beats_refused', [False, True])
-def test_a_retry_gives_up_when_a_refused_fit_explains_the_scan_clearly_better(
-        drive, beats_refused):
-    """reacquisition_beats_refused: the match from the prediction fails (fitness 0.3); the
-    retry's first guess fits 0.95 but 1 m off (beyond the bounds from the last trusted
-    pose), every other guess fits 0.75 where it started. Off: the poor plausible fit is
-    taken (`recovered`); on: a refused fit explains the scan clearly better, so the last
-    trusted pose is the likelier error: a fallback."""
-    reg = _moving_registration(drive, n_scans=8, reacquisition_beats_refused=beats_refused,
-                               turn_check=False)
+def _retried_with_scripted_fits(drive, move_first, first_fitness: float, other_fitness: float,
+                                **overrides):
+    """Scan 8 of `drive` after 8 matched ones: the match from the prediction fails (fitness
+    0.3) and is retried; the retry's first fine fit stops at `move_first(init)` with
+    `first_fitness`, every other one where it started with `other_fitness`. The result and the
+    number of fine fits."""
+    reg = _moving_registration(drive, n_scans=8, turn_check=False, **overrides)
     real_register, fine_fits = reg.icp.register, []
 
     def scripted(source, target, init, distance_m, **kwargs):
         result = real_register(source, target, init, distance_m, **kwargs)
-        T, fitness = np.asarray(init, dtype=float).copy(), 0.75
+        T, fitness = np.asarray(init, dtype=float).copy(), other_fitness
         if kwargs.get('prior'):
             fitness = 0.3  # the match from the prediction
         elif kwargs.get('recovery'):
             fine_fits.append(1)
             if len(fine_fits) == 1:
-                T[0, 3] += 1.0
-                fitness = 0.95
+                T, fitness = move_first(T), first_fitness
         return IcpResult(T, fitness, result.inlier_rmse, np.asarray(result.correspondence_set),
                          None, 1)
 
     reg.icp.register = scripted
     scan = drive[8]
-    result = reg.register(scan['points'], scan['stamp_ns'], scan['time'])
-    assert len(fine_fits) >= 2  # the refused fit and at least one plausible one
+    return reg.register(scan['points'], scan['stamp_ns'], scan['time']), len(fine_fits)
+
+
+def _moved_1_m_along_x(T: np.ndarray) -> np.ndarray:
+    T[0, 3] += 1.0
+    return T
+
+
+def _turned_0_1_rad(T: np.ndarray) -> np.ndarray:
+    T[:3, :3] = T[:3, :3] @ Rotation.from_euler('z', 0.1).as_matrix()
+    return T
+
+
+@pytest.mark.parametrize('beats_refused', [False, True])
+def test_a_retry_gives_up_when_a_refused_fit_explains_the_scan_clearly_better(
+        drive, beats_refused):
+    """reacquisition_beats_refused: the match from the prediction fails; the retry's first
+    guess fits 0.95 but 1 m off (beyond the bounds from the last trusted pose), every other
+    guess fits 0.75 where it started. Off: the poor plausible fit is taken (`recovered`); on:
+    a refused fit explains the scan clearly better, so the last trusted pose is the likelier
+    error: a fallback."""
+    result, n_fine = _retried_with_scripted_fits(drive, _moved_1_m_along_x, 0.95, 0.75,
+                                                 reacquisition_beats_refused=beats_refused)
+    assert n_fine >= 2  # the refused fit and at least one plausible one
     assert result.status == ('fallback_low_fitness' if beats_refused else 'recovered')
 
 
@@ -1317,26 +1335,8 @@ def test_reacquisition_can_pick_its_fit_by_the_share_near_the_map(drive, by_shar
     first reports fitness 0.95 at a pose turned 0.1 rad (few points within 0.3 m of the map),
     the others 0.85 where they started (near the truth). By ICP's fitness the turned one
     wins; by the share near the map the other."""
-    reg = _moving_registration(drive, n_scans=8, reacquisition_by_share=by_share,
-                               turn_check=False)
-    real_register, fine_fits = reg.icp.register, []
-
-    def scripted(source, target, init, distance_m, **kwargs):
-        result = real_register(source, target, init, distance_m, **kwargs)
-        T, fitness = np.asarray(init, dtype=float).copy(), 0.85
-        if kwargs.get('prior'):
-            fitness = 0.3
-        elif kwargs.get('recovery'):
-            fine_fits.append(1)
-            if len(fine_fits) == 1:
-                T[:3, :3] = T[:3, :3] @ Rotation.from_euler('z', 0.1).as_matrix()
-                fitness = 0.95
-        return IcpResult(T, fitness, result.inlier_rmse, np.asarray(result.correspondence_set),
-                         None, 1)
-
-    reg.icp.register = scripted
-    scan = drive[8]
-    result = reg.register(scan['points'], scan['stamp_ns'], scan['time'])
+    result, _ = _retried_with_scripted_fits(drive, _turned_0_1_rad, 0.95, 0.85,
+                                            reacquisition_by_share=by_share)
     assert result.status == 'recovered'
     assert result.fitness == pytest.approx(0.85 if by_share else 0.95)
     with pytest.raises(ConfigError, match='turn_check_gate_m'):
