@@ -3,7 +3,7 @@
 Usage:
   .venv/bin/python benchmarks/bench_record.py
       [--drives held-out|training|new-held-out|edge|confirm|edge-confirm|edge-new|
-                edge-screen|edge-late]
+                edge-screen|edge-late|edge-slid]
       [--jobs N]
       [--cache DIR]
       [--only LABEL ...] [--out benchmarks/results]
@@ -28,6 +28,7 @@ from gft_odom.bench.drives import (
     EDGE_LATE_DRIVES,
     EDGE_NEW_DRIVES,
     EDGE_SCREEN_DRIVES,
+    EDGE_SLID_DRIVES,
     HELD_OUT_DRIVES,
     NEW_HELD_OUT_DRIVES,
     TRAINING_DRIVES,
@@ -43,7 +44,7 @@ DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
               'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
               'confirm': CONFIRM_DRIVES, 'edge-confirm': EDGE_CONFIRM_DRIVES,
               'edge-new': EDGE_NEW_DRIVES, 'edge-screen': EDGE_SCREEN_DRIVES,
-              'edge-late': EDGE_LATE_DRIVES}
+              'edge-late': EDGE_LATE_DRIVES, 'edge-slid': EDGE_SLID_DRIVES}
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels

@@ -69,6 +69,9 @@ EDGE_SCREEN_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (241
 # Seeds 251-254, added later in session 27 (the screen held out again; the frequency's share
 # at the edge): edge routes no choice was made on.
 EDGE_LATE_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (251, 252, 253, 254))
+# Seeds 261-264, added in session 28 and run with the slid-match rules only after they were
+# chosen on edge drives 221, 226, 242 and 243: edge routes no choice was made on.
+EDGE_SLID_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (261, 262, 263, 264))
 
 
 def default_cache_dir() -> Path:

@@ -16,6 +16,7 @@ from gft_odom.bench.drives import (
     EDGE_LATE_DRIVES,
     EDGE_NEW_DRIVES,
     EDGE_SCREEN_DRIVES,
+    EDGE_SLID_DRIVES,
     HELD_OUT_DRIVES,
     NEW_HELD_OUT_DRIVES,
     TRAINING_DRIVES,
@@ -80,18 +81,19 @@ def test_drive_sets_share_no_seed_and_the_record_offers_each():
 
     from helpers import load_script
     sets = (TRAINING_DRIVES, HELD_OUT_DRIVES, NEW_HELD_OUT_DRIVES, EDGE_DRIVES, CONFIRM_DRIVES,
-            EDGE_CONFIRM_DRIVES, EDGE_NEW_DRIVES, EDGE_SCREEN_DRIVES, EDGE_LATE_DRIVES)
+            EDGE_CONFIRM_DRIVES, EDGE_NEW_DRIVES, EDGE_SCREEN_DRIVES, EDGE_LATE_DRIVES,
+            EDGE_SLID_DRIVES)
     seeds = [d.seed for drives in sets for d in drives]
     assert len(seeds) == len(set(seeds))
     assert {d.seed for d in NEW_HELD_OUT_DRIVES} == {211, 212, 213, 214}
     assert {d.route for d in NEW_HELD_OUT_DRIVES} == {'lawnmower', 'every_other_row', 'spiral',
                                                       'out_and_back'}
     assert {d.route for d in EDGE_DRIVES + EDGE_CONFIRM_DRIVES + EDGE_NEW_DRIVES
-            + EDGE_SCREEN_DRIVES + EDGE_LATE_DRIVES} == {'edge_lawnmower'}
+            + EDGE_SCREEN_DRIVES + EDGE_LATE_DRIVES + EDGE_SLID_DRIVES} == {'edge_lawnmower'}
     assert {d.route for d in CONFIRM_DRIVES} == {d.route for d in NEW_HELD_OUT_DRIVES}
     assert all(d.distance_m == 280.0 for d in NEW_HELD_OUT_DRIVES + EDGE_DRIVES + CONFIRM_DRIVES
                + EDGE_CONFIRM_DRIVES + EDGE_NEW_DRIVES + EDGE_SCREEN_DRIVES
-               + EDGE_LATE_DRIVES)
+               + EDGE_LATE_DRIVES + EDGE_SLID_DRIVES)
     record = load_script(Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_record.py')
     assert record.DRIVE_SETS == {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
                                  'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
@@ -99,7 +101,8 @@ def test_drive_sets_share_no_seed_and_the_record_offers_each():
                                  'edge-confirm': EDGE_CONFIRM_DRIVES,
                                  'edge-new': EDGE_NEW_DRIVES,
                                  'edge-screen': EDGE_SCREEN_DRIVES,
-                                 'edge-late': EDGE_LATE_DRIVES}
+                                 'edge-late': EDGE_LATE_DRIVES,
+                                 'edge-slid': EDGE_SLID_DRIVES}
 
 
 @pytest.mark.slow
