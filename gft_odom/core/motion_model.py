@@ -152,13 +152,18 @@ class MotionModel:
                 (int(stamp_ns) - self.trusted_stamp_ns) * 1e-9)
 
     def is_plausible(self, T_prev_curr: np.ndarray, dt_s: float) -> bool:
-        """Could the robot have made this motion in `dt_s` (bounds times 1 + margin)?"""
+        """Could the robot have made this motion in `dt_s` (bounds times 1 + margin)? The
+        rates it implies are kept for a caller that reports a refusal (the bounds watch)."""
+        distance_m, angle_rad = transform_magnitude(T_prev_curr)
+        self.last_implied_rates = ((distance_m / dt_s, angle_rad / dt_s) if dt_s > 0.0
+                                   else (float('inf'), float('inf')))
+        return self._within_bounds(T_prev_curr, dt_s)
+
+    def _within_bounds(self, T_prev_curr: np.ndarray, dt_s: float) -> bool:
+        """`is_plausible` without recording the rates."""
         cfg = self.config
         distance_m, angle_rad = transform_magnitude(T_prev_curr)
         slack = (1.0 + cfg.motion_margin) * max(dt_s, 0.0)
-        # What the motion implies, for a caller that reports a refusal (the bounds watch).
-        self.last_implied_rates = ((distance_m / dt_s, angle_rad / dt_s) if dt_s > 0.0
-                                   else (float('inf'), float('inf')))
         return (distance_m <= cfg.max_speed_mps * slack
                 and angle_rad <= cfg.max_yaw_rate_rps * slack)
 
@@ -178,8 +183,7 @@ class MotionModel:
         it took, when it is within the bounds, the option is on, that pose is within a gap,
         and `stamp_ns` is at least half a scan period after the last trusted pose (sooner, a
         scan is more likely a copy than the next sweep: the fault suite's mirrored copies,
-        30 ms after a scan, are judged from that pose alone). None otherwise. Leaves the
-        rates a refusal reports as they were."""
+        30 ms after a scan, are judged from that pose alone). None otherwise."""
         if not self.config.plausible_from_previous_trusted or self.previous_trusted is None:
             return None
         if self._elapsed_since_trusted(stamp_ns) < 0.5 * self.config.scan_period_s:
@@ -188,11 +192,8 @@ class MotionModel:
         elapsed_s = (int(stamp_ns) - ref_stamp_ns) * 1e-9
         if not 0.0 < elapsed_s <= self.config.max_gap_s:
             return None
-        rates = self.last_implied_rates
         motion = invert_transform(T_world_ref) @ T_world_est
-        plausible = self.is_plausible(motion, elapsed_s)
-        self.last_implied_rates = rates
-        return (motion, elapsed_s) if plausible else None
+        return (motion, elapsed_s) if self._within_bounds(motion, elapsed_s) else None
 
     def _periods(self, span_s):
         """`span_s` in scan periods, at least MIN_PERIOD_SHARE (scalar or array)."""
@@ -215,13 +216,10 @@ class MotionModel:
         """The capped velocity of the motion from the last trusted pose to `T_world_est`; None
         over no time or a gap (a mean over a gap is no velocity)."""
         motion, elapsed_s = self.since_trusted(stamp_ns, T_world_est)
-        if self.config.plausible_from_previous_trusted:
-            # Beyond the bounds from the last trusted pose but within them from the one
-            # before (`plausible_since_trusted`): the motion since that one.
-            rates = self.last_implied_rates  # what a refusal reports stays the match's
-            beyond = not self.is_plausible(motion, elapsed_s)
-            self.last_implied_rates = rates
-            previous = self._from_previous_trusted(stamp_ns, T_world_est) if beyond else None
+        if not self._within_bounds(motion, elapsed_s):
+            # Within them from the trusted pose before (`plausible_since_trusted`): the
+            # motion since that one.
+            previous = self._from_previous_trusted(stamp_ns, T_world_est)
             if previous is not None:
                 motion, elapsed_s = previous
         if 0.0 < elapsed_s <= self.config.max_gap_s:
