@@ -221,6 +221,7 @@ class ScanRegistration:
         self.trust.reset()
         self.recovery.reset()
         self.n_registered = 0
+        self.n_turn_continued = 0  # matches turn_continue_min_rad carried on
         self._prev_scan: o3d.geometry.PointCloud | None = None  # paper mode's target
         self.local_map.clear()
         self._map_provisional = False
@@ -473,6 +474,7 @@ class ScanRegistration:
             init = T_pred
         result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m,
                                    prior=self.mode == 'default')
+        result = self._continued_if_turning(source, target, init, result)
         T_est = np.asarray(result.transformation)
         if self.mode == 'paper':
             T_est = self.T_world_trusted @ T_est
@@ -481,6 +483,21 @@ class ScanRegistration:
             return Match(refusal, T_pred, float(result.fitness), float(result.inlier_rmse),
                          None)
         return fitted_match('ok', result, T_est, source_xyz, self.icp.matched(target))
+
+    def _continued_if_turning(self, source, target, init: np.ndarray, result):
+        """`turn_continue_min_rad`: a match the iteration cap stopped while it was still
+        turning away from `init` carries on from where it stopped."""
+        cfg = self.config
+        if (cfg.turn_continue_min_rad <= 0.0
+                or getattr(result, 'n_iterations', 0) < cfg.max_iterations):
+            return result  # off, converged, or open3d's ICP (which does not say)
+        T = np.asarray(result.transformation)
+        _, turned_rad = transform_magnitude(invert_transform(init) @ T)
+        if not turned_rad > cfg.turn_continue_min_rad:
+            return result
+        self.n_turn_continued += 1
+        return self.icp.register(source, target, T, cfg.max_correspondence_distance_m,
+                                 max_iterations=cfg.turn_continue_iterations)
 
     def _deskewed_as(self, sweep: _Sweep, velocity: np.ndarray) -> np.ndarray:
         """The source points deskewed as they would be were `velocity` the scan's motion

@@ -1341,3 +1341,22 @@ def test_reacquisition_can_pick_its_fit_by_the_share_near_the_map(drive, by_shar
     assert result.fitness == pytest.approx(0.85 if by_share else 0.95)
     with pytest.raises(ConfigError, match='turn_check_gate_m'):
         RegistrationConfig(reacquisition_by_share=True, turn_check_gate_m=0.0).validate()
+
+
+@pytest.mark.parametrize('min_rad, continued', [(0.0, False), (0.02, True), (0.2, False)])
+def test_a_match_capped_while_still_turning_carries_on(static_pair, min_rad, continued):
+    """turn_continue_min_rad: the prediction (standing still) misses b's 3 deg turn; ICP
+    stopped by its iteration cap (here 2) has turned part of the way and is still turning;
+    carried on, it gets there. A threshold above what it turned leaves it capped."""
+    a, b, T_ab = static_pair
+    reg = registration(max_iterations=2, deskew=False, turn_check=False,
+                       turn_continue_min_rad=min_rad)
+    reg.register(a['points'], a['stamp_ns'])
+    result = reg.register(b['points'], b_stamp(a))
+    assert result.status == 'ok'
+    assert reg.n_turn_continued == int(continued)
+    err_m, err_rad = pose_error(result.T_world_sensor, T_ab)
+    if continued:
+        assert err_m < 0.04 and err_rad < np.deg2rad(0.3), (err_m, np.rad2deg(err_rad))
+    else:
+        assert err_rad > np.deg2rad(0.6), np.rad2deg(err_rad)
