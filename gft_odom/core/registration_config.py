@@ -50,11 +50,13 @@ class RegistrationConfig:
     # A match stopped by max_iterations while still turning (its rotation from the prediction
     # above this) carries on for turn_continue_iterations more (0: off). At a turn's onset
     # (0 -> 2 rad/s within a scan) the prediction misses most of the yaw, and in open ground
-    # ICP turns the pose a few mrad an iteration: the cap stops it 0.03-0.06 rad short, and
+    # ICP turns the pose a few mrad an iteration: the cap stops it 0.04-0.09 rad short, and
     # the error stays (edge drive 226, scans 1136-1138, docs/registration.md, session 30).
     # Converging every capped match instead costs accuracy on the training drives (the
     # converged optimum on porous canopy is biased too: session 11); turning ones are ~0.1 %
-    # of the matches of an orchard drive.
+    # of the matches of an orchard drive. At 0.02 it keeps edge drives 221 / 226 (1.36 / 1.90
+    # -> 0.06 / 0.08 m) but loses 223, 227, 243 and 263, and the record's mean goes 0.0614 ->
+    # 0.0622 m: at a turn's onset on the edge drives it is a lottery, so off.
     turn_continue_min_rad: float = 0.0
     turn_continue_iterations: int = 70
     # Stop when the relative fitness and rmse changes fall below this: 1e-4 gave the same ATE

@@ -224,6 +224,8 @@ def test_default_config_is_valid_and_from_config_builds():
     ('rough_weight', -1.0, 'rough_weight'),
     ('smooth_nu', 0.0, 'smooth_nu'),
     ('voxel_priority', 'random', 'voxel_priority'),
+    ('turn_continue_min_rad', -0.01, 'turn_continue_min_rad'),
+    ('turn_continue_iterations', 0, 'turn_continue_iterations'),
 ])
 def test_invalid_config_names_the_field(field, value, message):
     cfg = dataclasses.replace(RegistrationConfig(), **{field: value})
