@@ -50,7 +50,7 @@ class RegistrationConfig:
     # A match stopped by max_iterations while still turning (its rotation from the prediction
     # above this) carries on for turn_continue_iterations more (0: off). At a turn's onset
     # (0 -> 2 rad/s within a scan) the prediction misses most of the yaw, and in open ground
-    # ICP turns the pose a few mrad an iteration: the cap stops it 0.04-0.09 rad short, and
+    # ICP turns the pose ~1 mrad an iteration: the cap stops it 0.04-0.09 rad short, and
     # the error stays (edge drive 226, scans 1136-1138, docs/registration.md, session 30).
     # Converging every capped match instead costs accuracy on the training drives (the
     # converged optimum on porous canopy is biased too: session 11); turning ones are ~0.1 %
