@@ -56,7 +56,8 @@ class RegistrationConfig:
     # converged optimum on porous canopy is biased too: session 11); turning ones are ~0.1 %
     # of the matches of an orchard drive. At 0.02 it keeps edge drives 221 / 226 (1.36 / 1.90
     # -> 0.06 / 0.08 m) but loses 223, 227, 243 and 263, and the record's mean goes 0.0614 ->
-    # 0.0622 m: at a turn's onset on the edge drives it is a lottery, so off.
+    # 0.0622 m: at a turn's onset on the edge drives it is a lottery, so off. The carried-on
+    # iterations have no motion prior (motion_prior_weight, solver 'gauss_newton').
     turn_continue_min_rad: float = 0.0
     turn_continue_iterations: int = 70
     # Stop when the relative fitness and rmse changes fall below this: 1e-4 gave the same ATE
@@ -366,6 +367,11 @@ class RegistrationConfig:
                               f"'gauss_newton' (open3d's ICP has one residual type)")
         if self.anderson_memory and self.solver != 'map_tree':
             raise ConfigError("anderson_memory needs solver 'map_tree'")
+        if self.turn_continue_min_rad > 0.0 and (self.mode != 'default'
+                                                 or self.solver == 'open3d'):
+            raise ConfigError("turn_continue_min_rad needs mode 'default' and solver "
+                              "'map_tree' or 'gauss_newton' (open3d's ICP does not say "
+                              "whether its iteration cap stopped it)")
         if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
             raise ConfigError("frequency_affinity_m needs solver 'gauss_newton' (open3d's "
                               "ICP pairs by distance alone)")

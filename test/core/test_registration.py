@@ -1362,3 +1362,6 @@ def test_a_match_capped_while_still_turning_carries_on(static_pair, min_rad, con
         assert err_m < 0.04 and err_rad < np.deg2rad(0.3), (err_m, np.rad2deg(err_rad))
     else:
         assert err_rad > np.deg2rad(0.6), np.rad2deg(err_rad)
+    for other in ({'solver': 'open3d'}, {'mode': 'paper'}):  # their ICP does not say
+        with pytest.raises(ConfigError, match='turn_continue_min_rad'):
+            RegistrationConfig(turn_continue_min_rad=0.02, **other).validate()
