@@ -36,12 +36,11 @@ class _Done(Exception):
     """The last scan asked for is registered."""
 
 
-def _yaw(T: np.ndarray) -> float:
-    return float(np.arctan2(T[1, 0], T[0, 0]))
-
-
-def _wrapped(angle_rad: float) -> float:
-    return float((angle_rad + np.pi) % (2.0 * np.pi) - np.pi)
+def heading_error_rad(T, T_true: np.ndarray) -> float:
+    """Yaw of `T` minus yaw of `T_true`, wrapped to [-pi, pi)."""
+    T = np.asarray(T)
+    difference = np.arctan2(T[1, 0], T[0, 0]) - np.arctan2(T_true[1, 0], T_true[0, 0])
+    return float((difference + np.pi) % (2.0 * np.pi) - np.pi)
 
 
 class TracingPipeline(OdometryPipeline):
@@ -67,21 +66,18 @@ class TracingPipeline(OdometryPipeline):
 
     def _trace(self, plain, source, target, init, distance_m, result) -> None:
         truth = self._true_pose()
-
-        def error(T) -> float:
-            return _wrapped(_yaw(np.asarray(T)) - _yaw(truth))
         carried = plain(source, target, np.asarray(result.transformation), distance_m,
                         max_iterations=self.carry_on)
         at_truth = truth.copy()
         at_truth[:3, 3] = init[:3, 3]
         from_truth = plain(source, target, at_truth, distance_m)
         self.rows.append({
-            'scan': self.index, 'prediction_rad': error(init),
-            'match_rad': error(result.transformation),
+            'scan': self.index, 'prediction_rad': heading_error_rad(init, truth),
+            'match_rad': heading_error_rad(result.transformation, truth),
             'match_iterations': int(getattr(result, 'n_iterations', -1)),
-            'carried_on_rad': error(carried.transformation),
+            'carried_on_rad': heading_error_rad(carried.transformation, truth),
             'carried_on_iterations': int(getattr(carried, 'n_iterations', -1)),
-            'from_true_heading_rad': error(from_truth.transformation)})
+            'from_true_heading_rad': heading_error_rad(from_truth.transformation, truth)})
 
     def register_frame(self, scan, freqs=None):
         self.index += 1
@@ -89,8 +85,8 @@ class TracingPipeline(OdometryPipeline):
         result = super().register_frame(scan, freqs)
         if self.first <= self.index <= self.last and self.rows:
             self.rows[-1].setdefault('status', result.status)
-            self.rows[-1].setdefault('final_rad', _wrapped(
-                _yaw(result.T_world_sensor) - _yaw(self._true_pose())))
+            self.rows[-1].setdefault('final_rad', heading_error_rad(result.T_world_sensor,
+                                                                    self._true_pose()))
         if self.index >= self.last:
             raise _Done
         return result
