@@ -4,7 +4,9 @@ The simulator labels every return (ground / trunk / canopy / other: posts, pipes
 vehicles). For each frequency definition (`gft_odom.core.spectral.frequency.REGISTRY`), each
 graph (`scan_line`, `slice`) and each source (`scan`: the single scan; `local_map`: the merged
 cloud of the last scans, frequencies passed to the scan's points by nearest neighbour), on
-several seeds, scenarios and simulator variants, it reports:
+several seeds, scenarios and simulator variants, and for the one feature that is not a
+frequency (`map_planarity`: the GenZ-ICP-style planarity of each point's neighbourhood in the
+local map, issue 20's ablation), it reports:
 - the band histogram per class (B = `--bands`, default 10);
 - the mutual information between band and class, in bits;
 - the balanced accuracy of the best threshold on nu for trunk + ground against canopy;
@@ -36,6 +38,7 @@ from scipy.spatial import cKDTree
 from gft_odom.core.spectral import SpectralConfig, SpectralFilter
 from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.spectral.frequency import REGISTRY
+from gft_odom.core.spectral.sources import make_source
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
 
 RESULTS = Path(__file__).parent / 'results' / 'frequency_classes.json'
@@ -135,6 +138,24 @@ def local_map_frequencies(filt: SpectralFilter, item, n_bands: int):
     return freqs.nu[nearest], freqs.band[nearest], t_map, t_query
 
 
+def map_planarity_values(item, n_bands: int):
+    """The `map_planarity` source on the last scans as keyframes (true poses), read at the
+    current scan's true pose: (nu, band), and the seconds it took (map and lookup)."""
+    history = item['history']
+    cfg = dataclasses.replace(SpectralConfig(), frequency_source='map_planarity',
+                              n_bands=n_bands, local_map_keyframes=len(history) + 1,
+                              local_map_keyframe_distance_m=1e-6)
+    source = make_source(SpectralFilter(cfg))
+    for h in history:
+        source.observe(cropped(h)[0], h.T_world_sensor)
+    pts, _ = cropped(item['scan'])
+    # An empty keyframe at the current pose: the lookup uses that pose, the map is unchanged.
+    source.observe(pts.select(np.zeros(len(pts), dtype=bool)), item['scan'].T_world_sensor)
+    t = time.perf_counter()
+    freqs = source.frequencies(pts, n_bands)
+    return freqs.nu, freqs.band, time.perf_counter() - t
+
+
 def exact_ldos_bands(filt: SpectralFilter, scan, n_bands: int, max_component: int = 3000):
     """Exact LDOS band energies by eigh per connected component (scan-line graph only):
     argmax band per point, -1 where the component is too large."""
@@ -167,15 +188,22 @@ def exact_ldos_bands(filt: SpectralFilter, scan, n_bands: int, max_component: in
 def evaluate(combo, scans, n_bands):
     """Figures of one definition x graph x source over `scans`."""
     method, graph, source = combo
-    cfg = dataclasses.replace(SpectralConfig(), method=method, graph=graph, n_bands=n_bands,
-                              solver='exact' if method == 'dominant' else 'chebyshev')
-    filt = SpectralFilter(cfg)
+    if source != 'map_planarity':
+        cfg = dataclasses.replace(SpectralConfig(), method=method, graph=graph,
+                                  n_bands=n_bands,
+                                  solver='exact' if method == 'dominant' else 'chebyshev')
+        filt = SpectralFilter(cfg)
     if method == 'dominant':
         scans = scans[::6]  # dense eigh of every slice: seconds a scan, so a subsample
     bands, nus, classes, times, cpu_times, agree = [], [], [], [], [], []
     for item in scans:
         pts, cls = cropped(item['scan'])
-        if source == 'local_map':
+        if source == 'map_planarity':
+            c = time.thread_time()
+            nu, band, t_all = map_planarity_values(item, n_bands)
+            times.append(t_all)  # the map's covariances for every scan (per keyframe online)
+            cpu_times.append(time.thread_time() - c)
+        elif source == 'local_map':
             c = time.thread_time()
             nu, band, t_map, t_query = local_map_frequencies(filt, item, n_bands)
             # Amortised: the map's frequencies are recomputed once per keyframe (every other
@@ -232,7 +260,7 @@ def combos(quick: bool):
         out.append((method, 'slice', 'local_map'))
     if quick:
         out = [c for c in out if c[0] in ('ldos_mean', 'signal')]
-    return out
+    return out + [('planarity', 'map', 'map_planarity')]  # not a frequency: the ablation
 
 
 def table(rows) -> str:

@@ -53,7 +53,9 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'reacquisition_beats_refused'): False,
                       ('registration', 'plausible_from_previous_trusted'): False,
                       ('registration', 'turn_continue_min_rad'): 0.0,
-                      ('registration', 'turn_continue_iterations'): 70}
+                      ('registration', 'turn_continue_iterations'): 70,
+                      ('spectral', 'planarity_neighbours'): 15,
+                      ('spectral', 'planarity_rough_variation'): 0.1}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

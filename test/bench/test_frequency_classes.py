@@ -49,3 +49,6 @@ def test_quick_run_writes_every_measure(tmp_path):
     assert 0.0 <= default['largest_band_share'] <= 1.0
     assert set(default['band_histogram_per_class']) == {'ground', 'trunk', 'canopy', 'other'}
     assert ('ldos_mean', 'slice', 'local_map') in rows
+    planarity = rows[('planarity', 'map', 'map_planarity')]
+    assert 0.0 <= planarity['mutual_information_bits'] <= 2.0
+    assert planarity['no_spectrum_share'] < 0.5  # most points find the map within 0.3 m

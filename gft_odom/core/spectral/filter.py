@@ -57,7 +57,7 @@ from gft_odom.errors import ConfigError, SpectralError
 log = logging.getLogger(__name__)
 
 GRAPHS = ('scan_line', 'slice')
-FREQUENCY_SOURCES = ('scan', 'local_map')
+FREQUENCY_SOURCES = ('scan', 'local_map', 'map_planarity')
 SOLVERS = ('chebyshev', 'exact')
 CENTRINGS = ('component', 'slice')
 BAND_ASSIGNMENTS = ('argmax', 'relative')
@@ -142,13 +142,23 @@ class SpectralConfig:
     # 'local_map' (the merged cloud of the last keyframes, as the paper computed them on the
     # merged map, passed to the scan by nearest neighbour). 'scan' carries far more information
     # about the surface (bench_frequency_classes: 0.5 vs 0.06 bits).
+    # 'map_planarity' is not a frequency: the GenZ-ICP-style planarity of each point's
+    # neighbourhood in that local map, on nu's scale (issue 20's ablation: what the frequency
+    # earns over a plain geometric feature in the same uses).
     frequency_source: str = 'scan'
-    # The local map of `local_map`: keyframes kept, the motion that makes a new keyframe, the
-    # map's voxel size, and how far a scan point may be from the map to take a frequency.
+    # The local map of `local_map` and `map_planarity`: keyframes kept, the motion that makes a
+    # new keyframe, the map's voxel size, and how far a scan point may be from the map to take
+    # its value.
     local_map_keyframes: int = 5
     local_map_keyframe_distance_m: float = 0.5
     local_map_voxel_m: float = 0.1
     local_map_max_distance_m: float = 0.3
+    # 'map_planarity': the map neighbours whose covariance gives a point's surface variation
+    # v = l_min / (l_1 + l_2 + l_3) (0 on a plane, 1/3 in a blob), and the v at which a point
+    # counts as fully rough; nu = 0.5 (1 - v / planarity_rough_variation), clipped to [0, 0.5]
+    # (0.5: what the scan-line frequency gives a smooth surface, ~0 canopy).
+    planarity_neighbours: int = 15
+    planarity_rough_variation: float = 0.1
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
@@ -160,7 +170,8 @@ class SpectralConfig:
         for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m',
                      'scan_line_slope_sigma', 'scan_line_max_gap_rad', 'scan_line_noise_m',
                      'local_map_keyframe_distance_m',
-                     'local_map_voxel_m', 'local_map_max_distance_m'):
+                     'local_map_voxel_m', 'local_map_max_distance_m',
+                     'planarity_rough_variation'):
             positive(name)
         if not (np.isfinite(self.z_min_m) and np.isfinite(self.z_max_m)
                 and self.z_max_m > self.z_min_m):
@@ -192,6 +203,9 @@ class SpectralConfig:
         if not 1 <= self.local_map_keyframes <= 100:
             raise ConfigError(f'spectral.local_map_keyframes must be in 1..100, '
                               f'got {self.local_map_keyframes}')
+        if not 3 <= self.planarity_neighbours <= 100:
+            raise ConfigError(f'spectral.planarity_neighbours must be in 3..100, '
+                              f'got {self.planarity_neighbours}')
         if not 1 <= self.kpm_probes <= 1000:
             raise ConfigError(f'spectral.kpm_probes must be in 1..1000, got {self.kpm_probes}')
         if self.exact_max_slice_points < 1:

@@ -9,6 +9,9 @@
   guess (the previous scan's pose). The merged cloud has no single ring structure, so the map
   always uses the slice graph. Measured in benchmarks/bench_frequency_classes.py: the transfer
   carries far less information about the surface than the scan's own scan-line graph.
+- `MapPlanaritySource` (`map_planarity`): no frequency at all, an ablation. The same local map,
+  but each map point's value is the planarity of its neighbourhood (GenZ-ICP's surface
+  variation), put on nu's scale; every use of nu downstream is unchanged.
 """
 
 from __future__ import annotations
@@ -17,9 +20,12 @@ import dataclasses
 import logging
 
 import numpy as np
+import open3d as o3d
 from scipy.spatial import cKDTree
 
 from gft_odom.core.geometry import finite_rows
+from gft_odom.core.residuals import smoothness_from_covariances
+from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
 from gft_odom.core.types import Scan
 
@@ -119,15 +125,44 @@ class LocalMapSource:
             _, first = np.unique(np.floor(merged / voxel).astype(np.int64), axis=0,
                                  return_index=True)
             merged = merged[np.sort(first)]
+        self._nu, self._band = self._map_values(merged, n_bands)
+        self._tree = cKDTree(merged) if merged.shape[0] else None
+        self._n_bands = n_bands
+        self.keyframe_updates += 1
+
+    def _map_values(self, merged: np.ndarray, n_bands: int) -> tuple[np.ndarray, np.ndarray]:
+        """(nu, band) of every merged map point: its frequency on the slice graph."""
         T_sensor_world = np.linalg.inv(self._T_last)
         freqs = self.map_filter.frequencies(_transform(T_sensor_world, merged), n_bands)
-        self._tree = cKDTree(merged) if merged.shape[0] else None
-        self._nu, self._band, self._n_bands = freqs.nu, freqs.band, n_bands
-        self.keyframe_updates += 1
+        return freqs.nu, freqs.band
+
+
+# nu of a perfectly planar neighbourhood: where the scan-line frequency puts a smooth surface.
+PLANAR_NU = 0.5
+
+
+class MapPlanaritySource(LocalMapSource):
+    """The local map's planarity in place of the frequency (GenZ-ICP-style, an ablation):
+    nu = PLANAR_NU (1 - v / planarity_rough_variation), v the surface variation of the map
+    point's `planarity_neighbours` nearest map points."""
+
+    def _map_values(self, merged: np.ndarray, n_bands: int) -> tuple[np.ndarray, np.ndarray]:
+        cfg = self.config
+        if merged.shape[0] < cfg.planarity_neighbours:  # too few for a neighbourhood
+            nu = np.full(merged.shape[0], np.nan, dtype=np.float32)
+            return nu, band_of_nu(nu, n_bands)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(merged))
+        cloud.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(cfg.planarity_neighbours))
+        planarity = smoothness_from_covariances(np.asarray(cloud.covariances),
+                                                cfg.planarity_rough_variation)
+        nu = (PLANAR_NU * planarity).astype(np.float32)
+        return nu, band_of_nu(nu, n_bands)
 
 
 def make_source(spectral_filter: SpectralFilter):
     """The source named by `spectral.frequency_source`."""
     if spectral_filter.config.frequency_source == 'local_map':
         return LocalMapSource(spectral_filter)
+    if spectral_filter.config.frequency_source == 'map_planarity':
+        return MapPlanaritySource(spectral_filter)
     return ScanSource(spectral_filter)

@@ -1,5 +1,5 @@
-"""Frequency sources: the scan's own graph, and the local map of keyframes (the paper's merged
-cloud) passed to each scan by nearest neighbour."""
+"""Frequency sources: the scan's own graph, the local map of keyframes (the paper's merged
+cloud) passed to each scan by nearest neighbour, and that map's planarity (an ablation)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,13 @@ import pytest
 
 from gft_odom.config import ConfigError, GftOdomConfig, with_values
 from gft_odom.core.spectral import SpectralConfig, SpectralFilter
-from gft_odom.core.spectral.sources import LocalMapSource, ScanSource, make_source
+from gft_odom.core.spectral.sources import (
+    PLANAR_NU,
+    LocalMapSource,
+    MapPlanaritySource,
+    ScanSource,
+    make_source,
+)
 from gft_odom.core.types import Scan
 from gft_odom.pipeline import OdometryPipeline
 
@@ -64,8 +70,37 @@ def test_local_map_passes_the_map_frequencies_to_the_nearest_points():
     assert source.keyframe_updates == 0
 
 
-def test_pipeline_with_local_map_source_runs_and_keeps_all_with_all_pass():
-    config = with_values(GftOdomConfig(), {'spectral.frequency_source': 'local_map'})
+def test_map_planarity_puts_a_plane_at_the_smooth_end_and_foliage_at_the_rough_end():
+    rng = np.random.default_rng(3)
+    ground = np.column_stack([rng.uniform(2.0, 6.0, 4000), rng.uniform(-2.0, 2.0, 4000),
+                              np.full(4000, -0.5) + rng.normal(0.0, 0.005, 4000)])
+    foliage = rng.uniform(-0.6, 0.6, (2000, 3)) + [4.0, 5.0, 1.5]  # a blob, no surface
+    points = np.concatenate([ground, foliage])
+    cfg = dataclasses.replace(SpectralConfig(), frequency_source='map_planarity',
+                              local_map_voxel_m=0.02)
+    source = make_source(SpectralFilter(cfg))
+    assert isinstance(source, MapPlanaritySource)
+    freqs = source.frequencies(Scan(0, points, ring=np.zeros(len(points), np.uint16)), 10)
+    assert np.all(freqs.band > 0)  # every point is on the map (it is the map)
+    assert np.median(freqs.nu[:4000]) > 0.9 * PLANAR_NU
+    assert np.median(freqs.nu[4000:]) < 0.2 * PLANAR_NU
+    # A stricter scale calls less of the foliage smooth, never more.
+    strict = make_source(SpectralFilter(dataclasses.replace(cfg, planarity_rough_variation=0.02)))
+    strict_nu = strict.frequencies(Scan(0, points, ring=np.zeros(len(points), np.uint16)), 10).nu
+    assert np.all(strict_nu <= freqs.nu + 1e-6)
+    assert np.mean(strict_nu[4000:]) < np.mean(freqs.nu[4000:])
+
+
+@pytest.mark.parametrize('field, value', [('planarity_neighbours', 2),
+                                          ('planarity_rough_variation', 0.0)])
+def test_invalid_planarity_settings_are_refused(field, value):
+    with pytest.raises(ConfigError, match=field):
+        dataclasses.replace(SpectralConfig(), **{field: value}).validate()
+
+
+@pytest.mark.parametrize('source', ['local_map', 'map_planarity'])
+def test_pipeline_with_a_map_source_runs_and_keeps_all_with_all_pass(source):
+    config = with_values(GftOdomConfig(), {'spectral.frequency_source': source})
     pipeline = OdometryPipeline(config)
     for k in range(3):
         result = pipeline.register_frame(dataclasses.replace(wall_scan(0.05 * k, seed=k),
