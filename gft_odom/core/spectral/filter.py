@@ -170,8 +170,7 @@ class SpectralConfig:
         for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m',
                      'scan_line_slope_sigma', 'scan_line_max_gap_rad', 'scan_line_noise_m',
                      'local_map_keyframe_distance_m',
-                     'local_map_voxel_m', 'local_map_max_distance_m',
-                     'planarity_rough_variation'):
+                     'local_map_voxel_m', 'local_map_max_distance_m'):
             positive(name)
         if not (np.isfinite(self.z_min_m) and np.isfinite(self.z_max_m)
                 and self.z_max_m > self.z_min_m):
@@ -203,9 +202,13 @@ class SpectralConfig:
         if not 1 <= self.local_map_keyframes <= 100:
             raise ConfigError(f'spectral.local_map_keyframes must be in 1..100, '
                               f'got {self.local_map_keyframes}')
-        if not 3 <= self.planarity_neighbours <= 100:
-            raise ConfigError(f'spectral.planarity_neighbours must be in 3..100, '
-                              f'got {self.planarity_neighbours}')
+        if not (isinstance(self.planarity_neighbours, int)
+                and 3 <= self.planarity_neighbours <= 100):
+            raise ConfigError(f'spectral.planarity_neighbours must be an integer in 3..100, '
+                              f'got {self.planarity_neighbours!r}')
+        if not 0.0 < self.planarity_rough_variation <= 1.0 / 3.0:  # 1/3: an isotropic blob
+            raise ConfigError(f'spectral.planarity_rough_variation must be in (0, 1/3], '
+                              f'got {self.planarity_rough_variation!r}')
         if not 1 <= self.kpm_probes <= 1000:
             raise ConfigError(f'spectral.kpm_probes must be in 1..1000, got {self.kpm_probes}')
         if self.exact_max_slice_points < 1:

@@ -144,7 +144,8 @@ PLANAR_NU = 0.5
 class MapPlanaritySource(LocalMapSource):
     """The local map's planarity in place of the frequency (GenZ-ICP-style, an ablation):
     nu = PLANAR_NU (1 - v / planarity_rough_variation), v the surface variation of the map
-    point's `planarity_neighbours` nearest map points."""
+    point's `planarity_neighbours` nearest map points. As GenZ-ICP's, it calls a line (a wire,
+    one sparse ring) planar: v is 0 there too."""
 
     def _map_values(self, merged: np.ndarray, n_bands: int) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.config

@@ -92,7 +92,10 @@ def test_map_planarity_puts_a_plane_at_the_smooth_end_and_foliage_at_the_rough_e
 
 
 @pytest.mark.parametrize('field, value', [('planarity_neighbours', 2),
-                                          ('planarity_rough_variation', 0.0)])
+                                          ('planarity_neighbours', 15.0),
+                                          ('planarity_rough_variation', 0.0),
+                                          ('planarity_rough_variation', 0.5),
+                                          ('planarity_rough_variation', float('nan'))])
 def test_invalid_planarity_settings_are_refused(field, value):
     with pytest.raises(ConfigError, match=field):
         dataclasses.replace(SpectralConfig(), **{field: value}).validate()
