@@ -24,6 +24,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from gft_odom.core.geometry import finite_rows
+from gft_odom.core.local_map import to_cloud
 from gft_odom.core.residuals import smoothness_from_covariances
 from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
@@ -152,7 +153,7 @@ class MapPlanaritySource(LocalMapSource):
         if merged.shape[0] < cfg.planarity_neighbours:  # too few for a neighbourhood
             nu = np.full(merged.shape[0], np.nan, dtype=np.float32)
             return nu, band_of_nu(nu, n_bands)
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(merged))
+        cloud = to_cloud(merged)
         cloud.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(cfg.planarity_neighbours))
         planarity = smoothness_from_covariances(np.asarray(cloud.covariances),
                                                 cfg.planarity_rough_variation)

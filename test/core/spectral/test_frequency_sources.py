@@ -80,13 +80,14 @@ def test_map_planarity_puts_a_plane_at_the_smooth_end_and_foliage_at_the_rough_e
                               local_map_voxel_m=0.02)
     source = make_source(SpectralFilter(cfg))
     assert isinstance(source, MapPlanaritySource)
-    freqs = source.frequencies(Scan(0, points, ring=np.zeros(len(points), np.uint16)), 10)
+    scan = Scan(0, points, ring=np.zeros(len(points), np.uint16))
+    freqs = source.frequencies(scan, 10)
     assert np.all(freqs.band > 0)  # every point is on the map (it is the map)
     assert np.median(freqs.nu[:4000]) > 0.9 * PLANAR_NU
     assert np.median(freqs.nu[4000:]) < 0.2 * PLANAR_NU
     # A stricter scale calls less of the foliage smooth, never more.
     strict = make_source(SpectralFilter(dataclasses.replace(cfg, planarity_rough_variation=0.02)))
-    strict_nu = strict.frequencies(Scan(0, points, ring=np.zeros(len(points), np.uint16)), 10).nu
+    strict_nu = strict.frequencies(scan, 10).nu
     assert np.all(strict_nu <= freqs.nu + 1e-6)
     assert np.mean(strict_nu[4000:]) < np.mean(freqs.nu[4000:])
 
