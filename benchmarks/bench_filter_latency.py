@@ -70,6 +70,7 @@ def main() -> None:
     for k, scan in enumerate(scans):
         for name in names[k % len(names):] + names[:k % len(names)]:
             result = pipelines[name].register_frame(scan)
+            pipelines[name].update_map()  # the frequencies, when they come after the pose
             t = timings[name]
             for stage in ('filter', 'register', 'pipeline'):
                 t[stage].append(result.timings_s[stage])

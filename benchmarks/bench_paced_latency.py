@@ -36,6 +36,8 @@ from bench_record import DRIVE_SETS, NO_ANY_SIDE, NO_DESKEW, RESULTS  # noqa: E4
 ENTRIES = (
     Entry('gft_odom, map update inline', 'default+gft',
           (('registration.map_update', 'inline'),)),
+    Entry('gft_odom, frequencies before the pose (session 31 default)', 'default+gft',
+          (('pipeline.frequencies_after_pose', False),)),
     Entry('gft_odom, map update in the background', 'default+gft',
           (('registration.map_update', 'background'),)),
     Entry('gft_odom, turn-check screen (session 26 default)', 'default+gft',

@@ -147,7 +147,9 @@ class LabelledPipeline(OdometryPipeline):
 
     def __init__(self, config: GftOdomConfig, source: str, surface: np.ndarray,
                  counts: np.ndarray, name: str):
-        super().__init__(config)
+        # Each scan's labels and keep mask are this object's state while that scan is
+        # registered, so its frequencies are read then, not after the pose.
+        super().__init__(with_values(config, {'pipeline.frequencies_after_pose': False}))
         self.source, self.surface, self.counts, self.name = source, surface, counts, name
         self.offsets = np.r_[0, np.cumsum(counts)]
         self._scan_index = 0

@@ -42,6 +42,11 @@ class PipelineConfig:
     # Which permutation the control draws (0: the one of the records since session 6); a
     # few seeds give the control's spread, against which the frequency's choice is judged.
     shuffle_seed: int = 0
+    # A scan's frequencies after its pose is out, when nothing needs them before it: the
+    # mask keeps every point and the registration reads them only for its next keyframe's
+    # map (the default). The same poses; the pose comes a filter stage sooner. Off: before
+    # the registration, as up to session 31.
+    frequencies_after_pose: bool = True
 
     def validate(self) -> None:
         """Raise ConfigError naming the first value that cannot work."""

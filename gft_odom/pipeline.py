@@ -21,12 +21,14 @@ import logging
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.bounds_watch import BoundsWatch
 from gft_odom.core.constants import NS_PER_S
+from gft_odom.core.deferred import Deferred, resolved
 from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transform_points
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
@@ -92,14 +94,25 @@ class FrameResult:
     n_points_in: int
     n_points_kept: int
     filtered: Scan  # the points registration used
-    nu: np.ndarray | None  # per kept point, None when the filter is off
-    band: np.ndarray | None
+    # (nu, band) per kept point, None when the filter is off; computed after the pose when
+    # nothing needs them before it (`pipeline.frequencies_after_pose`), at the first read.
+    frequencies: Deferred | None
     timings_s: dict[str, float] = field(default_factory=dict)
     rejection: Rejection | None = None  # set when the scan was not registered
     # Sensor-frame velocity (rot rad/s, lin m/s) and the match's information matrix
     # (RegistrationResult.twist / .information); zeros / None when not registered.
     twist: np.ndarray = field(default_factory=lambda: np.zeros(6))
     information: np.ndarray | None = None
+
+    @property
+    def nu(self) -> np.ndarray | None:
+        """Each kept point's graph frequency, None when the filter is off."""
+        return None if self.frequencies is None else self.frequencies.get()[0]
+
+    @property
+    def band(self) -> np.ndarray | None:
+        """Each kept point's band (0: no spectrum), None when the filter is off."""
+        return None if self.frequencies is None else self.frequencies.get()[1]
 
     @property
     def fell_back(self) -> bool:
@@ -110,6 +123,17 @@ class FrameResult:
     def accepted(self) -> bool:
         """False for a scan rejected before registration (its pose is the last one)."""
         return not self.status.startswith('rejected')
+
+
+def _nu_and_band(freqs: PointFrequencies) -> tuple[np.ndarray, np.ndarray]:
+    return freqs.nu, freqs.band
+
+
+def _computed(value) -> Deferred:
+    """A `Deferred` already holding `value`."""
+    ready = Deferred(lambda: value)
+    ready.get()
+    return ready
 
 
 def thinnest_axis_std_m(points_xyz: np.ndarray) -> float:
@@ -151,6 +175,9 @@ class OdometryPipeline:
         self._last_accepted_ns: int | None = None
         self._jump_candidate_ns: int | None = None  # a stamp jump waiting for confirmation
         self._trims_pending = 0
+        # What the last scan left for `update_map`: (its deferred frequencies or None, the
+        # cropped scan, the pose the frequency source observes or None, its timings).
+        self._left_after_pose: tuple | None = None
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -158,6 +185,7 @@ class OdometryPipeline:
         empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
         self.registration.reset()
         self.frequency_source.reset()  # a local-map source holds keyframes of the old run
+        self._left_after_pose = None  # the old run's: nothing of it goes into the new one
         self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
@@ -246,18 +274,24 @@ class OdometryPipeline:
         # 1. Range crop: drop the robot's own body and far, sparse returns.
         cropped = self._crop(scan)
         t1 = time.perf_counter()
-        # 2. Graph-frequency band-pass: per-point band, keep the bands of the mask.
-        nu = band = None
-        kept = cropped
+        # 2. Graph-frequency band-pass: per-point band, keep the bands of the mask. A mask
+        # that keeps every point leaves the frequencies to after the pose.
+        kept, kept_freqs, after_pose = cropped, None, None
         if self.use_filter and len(cropped):
-            if freqs is None:
-                freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
-            keep = self._precomputed_keep(cropped, freqs)
-            if keep.all():  # all-pass: no copy of the scan
-                kept, nu, band = cropped, freqs.nu, freqs.band
+            if freqs is None and self.frequencies_after_pose:
+                # The crop keeps only finite points, so the mask keeps them all.
+                after_pose = Deferred(partial(self.frequency_source.frequencies, cropped,
+                                              self.band_mask.n_bands))
+                kept_freqs = after_pose.then(_nu_and_band)
             else:
-                kept = cropped.select(keep)
-                nu, band = freqs.nu[keep], freqs.band[keep]
+                if freqs is None:
+                    freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+                keep = self._precomputed_keep(cropped, freqs)
+                if keep.all():  # all-pass: no copy of the scan
+                    kept_freqs = _computed((freqs.nu, freqs.band))
+                else:
+                    kept = cropped.select(keep)
+                    kept_freqs = _computed((freqs.nu[keep], freqs.band[keep]))
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
         flat_std_m = thinnest_axis_std_m(kept.points_xyz)
@@ -266,12 +300,17 @@ class OdometryPipeline:
                       'prediction', scan.stamp_ns, flat_std_m)
             reg = self.registration.advance_with_prediction(scan.stamp_ns, DEGENERATE_STATUS)
         else:
+            nu = None if kept_freqs is None else kept_freqs.then(
+                lambda nu_band: self._registration_nu(nu_band[0], scan.stamp_ns))
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
-                                             kept.time_offset_s, nu=self._registration_nu(
-                                                 nu, scan.stamp_ns), defer_map_update=True)
+                                             kept.time_offset_s,
+                                             nu=nu if after_pose else resolved(nu),
+                                             defer_map_update=True)
         t3 = time.perf_counter()
-        # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map.
-        if self.use_filter and not reg.status.startswith('fallback'):
+        # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map
+        # (after the frequencies: in `update_map` when they come after the pose).
+        observe = self.use_filter and not reg.status.startswith('fallback')
+        if observe and after_pose is None:
             self.frequency_source.observe(cropped, reg.T_world_sensor)
         t4 = time.perf_counter()  # a local-map source's keyframe update is filter time
         T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
@@ -280,13 +319,24 @@ class OdometryPipeline:
         if self.record_trajectory:
             self._stamps_ns.append(int(scan.stamp_ns))
             self._poses.append(reg.T_world_sensor)
+        timings_s = {'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
+                     'pipeline': t4 - t0}
+        self._left_after_pose = (after_pose, cropped,
+                                 reg.T_world_sensor if observe else None, timings_s)
         return FrameResult(
             stamp_ns=int(scan.stamp_ns), T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
-            n_points_in=len(scan), n_points_kept=len(kept), filtered=kept, nu=nu, band=band,
-            twist=reg.twist, information=reg.information,
-            timings_s={'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
-                       'pipeline': t4 - t0})
+            n_points_in=len(scan), n_points_kept=len(kept), filtered=kept,
+            frequencies=kept_freqs, twist=reg.twist, information=reg.information,
+            timings_s=timings_s)
+
+    @property
+    def frequencies_after_pose(self) -> bool:
+        """Whether a scan's frequencies are computed after its pose
+        (`pipeline.frequencies_after_pose`, and a mask that keeps every point whatever its
+        frequency: the pose does not need them)."""
+        return (self.config.pipeline.frequencies_after_pose
+                and self.spectral_filter.keeps_every_finite_point(self.band_mask))
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control
@@ -304,7 +354,7 @@ class OdometryPipeline:
             T_odom_base=sensor_to_base_poses(T_world_sensor, self.T_base_sensor),
             covariance=np.diag(self.registration.fallback_var),
             status=f'rejected_{rejection.reason}', n_points_in=len(scan), n_points_kept=0,
-            filtered=scan.select(np.zeros(0, dtype=np.int64)), nu=None, band=None,
+            filtered=scan.select(np.zeros(0, dtype=np.int64)), frequencies=None,
             rejection=rejection)
 
     def _precomputed_keep(self, cropped: Scan, freqs: PointFrequencies) -> np.ndarray:
@@ -342,13 +392,33 @@ class OdometryPipeline:
         self.config = config
 
     def update_map(self) -> float:
-        """The map work the last `register_frame` left (a keyframe: the map's rebuild, its
-        normals and KD-tree); the seconds it took, 0 when there was none.
+        """The work the last `register_frame` left after its pose: its frequencies (when
+        they come after the pose, and nobody read them yet) and a keyframe's map rebuild
+        (its normals and KD-tree); the seconds it took.
 
         `register_frame` returns the pose first, so that a caller can publish it and then
         call this; the next `register_frame` does it when the caller did not. Either way
-        the poses are the same."""
-        return self.registration.update_map()
+        the poses are the same. The scan's `timings_s` get 'filter' (the frequencies,
+        wherever they were computed) and 'map_update'."""
+        t0 = time.perf_counter()
+        left, self._left_after_pose = self._left_after_pose, None
+        after_pose, cropped, T_observed, timings_s = left or (None, None, None, {})
+        if after_pose is not None:
+            observe_s = 0.0
+            try:
+                after_pose.get()  # the keyframe's smoothness and the source need them
+            except Exception as exc:  # the pose is out: the scan is not lost for this
+                log.warning('the frequencies of the scan at %d ns failed after its pose '
+                            '(%r): its keyframe, if any, is mapped without them',
+                            cropped.stamp_ns, exc)
+            else:
+                t1 = time.perf_counter()
+                if T_observed is not None:
+                    self.frequency_source.observe(cropped, T_observed)
+                observe_s = time.perf_counter() - t1
+            timings_s['filter'] = after_pose.seconds + observe_s
+        timings_s['map_update'] = self.registration.update_map()
+        return time.perf_counter() - t0
 
     def map_snapshot(self, latest: FrameResult | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:

@@ -57,8 +57,9 @@ class ReplayResult:
     rejected: dict[str, int] = field(default_factory=dict)
     ground_truth: Trajectory | None = None
     ground_truth_is_gps: bool = False
-    # (n_scans,) the map work after each pose (`OdometryPipeline.update_map`); None when the
-    # method does it inside its time to the pose.
+    # (n_scans,) the work after each pose (`OdometryPipeline.update_map`: the frequencies
+    # when they come after it, a keyframe's map rebuild); None when the method does it
+    # inside its time to the pose.
     map_update_s: np.ndarray | None = None
     # (n_scans,) each latency's scan stamp: the latency at the sensor's rate needs them.
     scan_stamps_ns: np.ndarray | None = None
@@ -116,10 +117,11 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                 rejected[result.rejection.reason] += 1
                 continue
             latency.append(t_decode + result.timings_s['pipeline'])
-            map_update.append(pipeline.update_map())  # after the pose, as the node does
+            # The work after the pose, as the node does it (frequencies left for after the
+            # pose, a keyframe's map rebuild): busy time; its stages go into timings_s.
+            map_update.append(pipeline.update_map())
             stamps.append(result.stamp_ns)
-            for name, value in {'decode': t_decode, **result.timings_s,
-                                'map_update': map_update[-1]}.items():
+            for name, value in {'decode': t_decode, **result.timings_s}.items():
                 stages.setdefault(name, []).append(value)
             points_in.append(result.n_points_in)
             points_kept.append(result.n_points_kept)

@@ -55,7 +55,8 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'turn_continue_min_rad'): 0.0,
                       ('registration', 'turn_continue_iterations'): 70,
                       ('spectral', 'planarity_neighbours'): 15,
-                      ('spectral', 'planarity_rough_variation'): 0.1}
+                      ('spectral', 'planarity_rough_variation'): 0.1,
+                      ('pipeline', 'frequencies_after_pose'): True}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

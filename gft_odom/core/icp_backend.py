@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import open3d as o3d
 
+from gft_odom.core.deferred import Deferred, resolved
 from gft_odom.core.gauss_newton import GaussNewtonICP
 from gft_odom.core.local_map import LocalMap
 from gft_odom.core.map_tree_icp import MapTreeICP
@@ -87,15 +88,23 @@ class IcpBackend:
             local_map.with_normals = config.map_normals == 'rebuild'
             local_map.keep_normals = config.map_normals == 'kept'
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
-        # the same with unknown kept NaN (frequency_affinity_m); set per scan.
+        # the same with unknown kept NaN (frequency_affinity_m, rough_kernel_scale_m; a
+        # Deferred is computed only when one of them reads it); set per scan.
         self.source_smoothness: np.ndarray | None = None
-        self.point_smoothness: np.ndarray | None = None
+        self.point_smoothness: np.ndarray | Deferred | None = None
 
     def use_smoothness(self, source_smoothness: np.ndarray | None,
-                       point_smoothness: np.ndarray | None) -> None:
+                       point_smoothness: np.ndarray | Deferred | None) -> None:
         """The smoothness of the scan about to be matched (None: not used)."""
         self.source_smoothness = source_smoothness
         self.point_smoothness = point_smoothness
+
+    def _match_smoothness(self) -> np.ndarray | None:
+        """The scan points' smoothness for the Gauss-Newton candidate choice: only read
+        with frequency_affinity_m > 0, so only computed then."""
+        if self.point_smoothness is None or not self.config.frequency_affinity_m > 0.0:
+            return None
+        return resolved(self.point_smoothness)
 
     def _point_kernel_scale_m(self) -> np.ndarray | None:
         """Each scan point's kernel scale, from robust_kernel_scale_m where it is smooth to
@@ -104,7 +113,7 @@ class IcpBackend:
         rough_m = self.config.rough_kernel_scale_m
         if rough_m <= 0.0 or self.point_smoothness is None:
             return None
-        s = np.clip(np.nan_to_num(self.point_smoothness, nan=0.0), 0.0, 1.0)
+        s = np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
         return rough_m + (self.config.robust_kernel_scale_m - rough_m) * s
 
     @property
@@ -136,7 +145,7 @@ class IcpBackend:
         if self.solver is not None and target is self.local_map.cloud:
             return self.solver.register(np.asarray(source.points), self.local_map.target(),
                                         init, distance_m, self.source_smoothness,
-                                        criteria.max_iteration, self.point_smoothness,
+                                        criteria.max_iteration, self._match_smoothness(),
                                         (init, self.config.motion_prior_weight)
                                         if prior and self.config.motion_prior_weight > 0.0
                                         else None)

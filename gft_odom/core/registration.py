@@ -56,6 +56,7 @@ from functools import partial
 import numpy as np
 import open3d as o3d
 
+from gft_odom.core.deferred import Deferred, resolved
 from gft_odom.core.deskew import azimuth_time_offsets, deskew_points
 from gft_odom.core.geometry import along_beams, finite_rows, invert_transform, transform_points
 from gft_odom.core.icp_backend import RECOVERY_ITERATIONS_FACTOR as RECOVERY_ITERATIONS_FACTOR
@@ -141,10 +142,10 @@ class _Sweep:
 
     points_xyz: np.ndarray  # (N, 3) the whole scan, sensor frame
     time_offset_s: np.ndarray | None  # (N,) per-point times from the bag, if any
-    nu: np.ndarray | None  # (N,) per-point graph frequency, if any
+    nu: np.ndarray | Deferred | None  # (N,) per-point graph frequency, if any
     keep: np.ndarray | None = None  # indices of the downsampled points
     source_xyz: np.ndarray | None = None  # the points ICP matches (downsampled, deskewed)
-    point_smoothness: np.ndarray | None = None  # theirs, as the map remembers it (or None)
+    point_smoothness: np.ndarray | Deferred | None = None  # theirs, as the map keeps it
     offsets_s: np.ndarray | None = None  # (N,) point times; set only when deskewed
     dt_s: float = 0.0  # since the previous scan
     scan_motion: np.ndarray | None = None  # its own motion, when re-deskewed with it
@@ -226,7 +227,7 @@ class ScanRegistration:
         self.local_map.clear()
         self._map_provisional = False
         # A keyframe a deferred `register` left for `update_map`: (world points, pose,
-        # smoothness or None).
+        # smoothness, perhaps still Deferred, or None).
         self._pending_keyframe: tuple | None = None
         self._adopt_at_scan = 0
         # The last registered scan's (time offsets, motion, dt) when it was deskewed.
@@ -255,9 +256,12 @@ class ScanRegistration:
         if pending is None:
             return 0.0
         t0 = time.perf_counter()
+        points_world, T_world_sensor, smoothness = pending
         # The first keyframe is built at once: the next scan has no other map.
         background = self._background_map and len(self.local_map) > 0
-        self.local_map.add_keyframe(*pending, background=background)
+        self.local_map.add_keyframe(points_world, T_world_sensor,
+                                    _smoothness_or_unknown(smoothness, points_world.shape[0]),
+                                    background=background)
         if background:
             self._adopt_at_scan = self.n_registered + 1  # served from the scan after next
         elif self.icp.solves_on_map_target and len(self.local_map):
@@ -292,7 +296,9 @@ class ScanRegistration:
         """Register one scan (sensor frame, any number of points) and update the state.
 
         `nu` (N,): every point's graph frequency (NaN: none), read by residual_model
-        'frequency'; without it every pair is weighted alike. `defer_map_update`: a keyframe
+        'frequency'; without it every pair is weighted alike. A `Deferred` nu is computed
+        only when something reads it: the default reads it for the keyframe's map, in
+        `update_map`, after the pose. `defer_map_update`: a keyframe
         this scan makes waits for `update_map` (or the next `register`), so the pose is
         returned before the map's rebuild."""
         sweep = _Sweep(*self._check_input(points_xyz, time_offset_s, nu))
@@ -324,17 +330,18 @@ class ScanRegistration:
         """The source points (one per voxel: the first in scan order, or the smoothest) and
         their smoothness for the solver and the map."""
         t0 = time.perf_counter()
+        # A deferred nu is computed here only for the options that read it before the pose.
         cfg, nu = self.config, sweep.nu
-        priority = nu if cfg.voxel_priority == 'smoothest' else None
+        priority = resolved(nu) if cfg.voxel_priority == 'smoothest' else None
         sweep.keep = voxel_downsample_indices(sweep.points_xyz, cfg.voxel_size_m, priority)
         sweep.source_xyz = sweep.points_xyz[sweep.keep]
-        source_smoothness = (smoothness_from_nu(nu[sweep.keep], cfg.smooth_nu)
+        source_smoothness = (smoothness_from_nu(resolved(nu)[sweep.keep], cfg.smooth_nu)
                              if nu is not None and cfg.residual_model == 'frequency' else None)
         # The map remembers the smoothness of its points (unknown kept NaN) when it is read.
         remembered = nu is not None and (cfg.map_anchors or (
             self.icp.solver is not None and cfg.frequency_affinity_m > 0.0))
-        sweep.point_smoothness = (smoothness_from_nu(nu[sweep.keep], cfg.smooth_nu,
-                                                     unknown=np.nan) if remembered else None)
+        sweep.point_smoothness = (_map_smoothness(nu, sweep.keep, cfg.smooth_nu)
+                                  if remembered else None)
         self.icp.use_smoothness(source_smoothness, sweep.point_smoothness)
         if cfg.rough_beam_shift_m != 0.0 and nu is not None:
             self._shift_rough_points(sweep)
@@ -344,7 +351,7 @@ class ScanRegistration:
         """`rough_beam_shift_m`: the kept points moved along their beams by their roughness
         (in the scan itself, so that the deskew after the match carries it into the map)."""
         cfg = self.config
-        roughness = 1.0 - smoothness_from_nu(sweep.nu[sweep.keep], cfg.smooth_nu,
+        roughness = 1.0 - smoothness_from_nu(resolved(sweep.nu)[sweep.keep], cfg.smooth_nu,
                                              unknown=1.0)
         points = sweep.points_xyz.copy()
         points[sweep.keep] = along_beams(points[sweep.keep], cfg.rough_beam_shift_m * roughness)
@@ -537,8 +544,8 @@ class ScanRegistration:
         if cfg.map_points_from == 'registration' or sweep.source_xyz.shape[0] == 0:
             return sweep.source_xyz, sweep.point_smoothness
         dense = voxel_downsample_indices(sweep.points_xyz, cfg.map_voxel_size_m)
-        smooth = (None if sweep.point_smoothness is None else smoothness_from_nu(
-            sweep.nu[dense], cfg.smooth_nu, unknown=np.nan))
+        smooth = (None if sweep.point_smoothness is None
+                  else _map_smoothness(sweep.nu, dense, cfg.smooth_nu))
         if sweep.map_motion is None:
             return sweep.points_xyz[dense], smooth
         return deskew_points(sweep.points_xyz[dense], sweep.offsets_s[dense], sweep.map_motion,
@@ -550,11 +557,10 @@ class ScanRegistration:
         points = np.asarray(points_xyz, dtype=float)
         if points.ndim != 2 or points.shape[1] != 3:
             raise RegistrationError(f'points_xyz must have shape (N, 3), got {points.shape}')
-        if nu is not None:
-            nu = np.asarray(nu, dtype=float).reshape(-1)
-            if nu.shape[0] != points.shape[0]:
-                raise RegistrationError(f'nu has {nu.shape[0]} values for {points.shape[0]} '
-                                        'points')
+        if isinstance(nu, Deferred):
+            nu = nu.then(partial(_checked_nu, n_points=points.shape[0]))
+        elif nu is not None:
+            nu = _checked_nu(nu, points.shape[0])
         if time_offset_s is not None:
             time_offset_s = np.asarray(time_offset_s, dtype=float).reshape(-1)
             if time_offset_s.shape[0] != points.shape[0]:
@@ -567,7 +573,10 @@ class ScanRegistration:
         if not finite.all():
             points = points[finite]
             time_offset_s = None if time_offset_s is None else time_offset_s[finite]
-            nu = None if nu is None else nu[finite]
+            if isinstance(nu, Deferred):
+                nu = nu.then(lambda values: values[finite])
+            elif nu is not None:
+                nu = nu[finite]
         return points, time_offset_s, nu
 
     def _time_offsets(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None):
@@ -576,3 +585,32 @@ class ScanRegistration:
         return azimuth_time_offsets(points_xyz, self.config.scan_period_s,
                                     self.config.azimuth_stamp_at_sweep_end)
 
+
+def _checked_nu(values, n_points: int) -> np.ndarray:
+    """`values` as the (n_points,) float frequencies of a scan."""
+    nu = np.asarray(values, dtype=float).reshape(-1)
+    if nu.shape[0] != n_points:
+        raise RegistrationError(f'nu has {nu.shape[0]} values for {n_points} points')
+    return nu
+
+
+def _smoothness_or_unknown(smoothness: np.ndarray | Deferred | None, n_points: int
+                           ) -> np.ndarray | None:
+    """A keyframe's smoothness; unknown (NaN) when its deferred frequencies failed: the
+    keyframe still goes into the map, as it would without frequencies."""
+    try:
+        return resolved(smoothness)
+    except Exception as exc:  # what a frequency computation raised, told once per keyframe
+        log.warning('a keyframe goes into the map without its smoothness: its frequencies '
+                    'failed (%r)', exc)
+        return np.full(n_points, np.nan)
+
+
+def _map_smoothness(nu: np.ndarray | Deferred, index: np.ndarray,
+                    smooth_nu: float) -> np.ndarray | Deferred:
+    """The smoothness the map remembers for the points `index` (NaN: unknown); deferred
+    with `nu`."""
+    if isinstance(nu, Deferred):
+        return nu.then(lambda values: smoothness_from_nu(values[index], smooth_nu,
+                                                         unknown=np.nan))
+    return smoothness_from_nu(nu[index], smooth_nu, unknown=np.nan)

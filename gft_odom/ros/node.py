@@ -292,8 +292,8 @@ class FilterOdomNode(Node):
         except Exception as exc:  # an exception in a callback would end rclpy.spin
             self._warn('failed', f'scan at {scan.stamp_ns} ns not processed (bug?): {exc!r}')
             return
-        self._publish(result, msg.header)
-        latency_s = time.perf_counter() - t0
+        odometry_out_s = self._publish(result, msg.header)
+        latency_s = odometry_out_s - t0
         self.latencies_s.append(latency_s)
         # The map work a keyframe leaves, once the odometry is out (the next scan waits).
         try:
@@ -382,13 +382,16 @@ class FilterOdomNode(Node):
                 base_twist_covariance(result.covariance, result.T_world_sensor[:3, :3],
                                       T_base_sensor, step_s))
 
-    def _publish(self, result: FrameResult, header) -> None:
+    def _publish(self, result: FrameResult, header) -> float:
+        """Publish the scan's odometry, transform and cloud; when the odometry went out
+        (`time.perf_counter`): the latency the node reports ends there."""
         node_cfg = self.config.node
         stamp_ns = result.stamp_ns
         twist, twist_cov = self.twist_of(result)
         odom = odometry_msg(result.T_odom_base, stamp_ns, node_cfg.odom_frame,
                             node_cfg.base_frame, result.covariance, twist, twist_cov)
         self.odom_pub.publish(odom)
+        odometry_out_s = time.perf_counter()
         if result.information is not None:
             # The information is in the world (first sensor) axes: into base_link's.
             R_base_world = (self.pipeline.T_base_sensor[:3, :3]
@@ -412,10 +415,17 @@ class FilterOdomNode(Node):
                        'z': scan.points_xyz[:, 2].astype(np.float32),
                        'intensity': (scan.intensity if scan.intensity is not None
                                      else np.zeros(len(scan), np.float32)).astype(np.float32)}
-            if result.nu is not None:
-                columns['frequency'] = result.nu.astype(np.float32)
-                columns['band'] = result.band.astype(np.uint8)
+            try:  # computed now when they come after the pose (the odometry is out)
+                nu, band = result.nu, result.band
+            except Exception as exc:
+                self._warn('failed', f'scan at {stamp_ns} ns: its cloud goes out without '
+                           f'frequencies ({exc!r})')
+                nu = band = None
+            if nu is not None:
+                columns['frequency'] = nu.astype(np.float32)
+                columns['band'] = band.astype(np.uint8)
             self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), stamp_ns, header.frame_id))
+        return odometry_out_s
 
     def _publish_path(self) -> None:
         """The whole bounded Path, when it changed and someone listens (timer)."""

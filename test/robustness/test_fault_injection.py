@@ -201,7 +201,7 @@ def test_node_and_replay_give_the_same_trajectory_with_faults(fault_drive, tmp_p
     published = []
     real_publish = node._publish
     node._publish = lambda result, header: (published.append(result),
-                                            real_publish(result, header))
+                                            real_publish(result, header))[1]
     try:
         for msg in messages:
             node._on_cloud(msg)

@@ -110,7 +110,7 @@ def test_hostile_clouds_warn_once_each_and_leave_odometry_alone(node_in_process,
     real_log_warning = logger.warning
     node._warn = lambda kind, text: (warned.append((kind, text)), real_warn(kind, text))
     node._publish = lambda result, header: (published.append(result),
-                                            real_publish(result, header))
+                                            real_publish(result, header))[1]
     logger.warning = lambda text, **kw: (logged.append(text), real_log_warning(text, **kw))
 
     for name, kind, msg in schedule:

@@ -297,6 +297,12 @@ class SpectralFilter:
         """Whether masks keep points outside the slicing z range (band 0)."""
         return self.config.keep_out_of_range
 
+    def keeps_every_finite_point(self, band_mask: BandMask | None = None) -> bool:
+        """Whether `band_mask` (default: the filter's) keeps every point with finite
+        coordinates whatever its frequency: all bands, and band 0 kept for both reasons."""
+        mask = self.band_mask if band_mask is None else band_mask
+        return mask.is_all_pass and self.keep_isolated and self.keep_out_of_range
+
     # -- public API ------------------------------------------------------------------------
 
     def frequencies(self, points_xyz: np.ndarray, n_bands: int | None = None,
