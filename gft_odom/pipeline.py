@@ -106,13 +106,22 @@ class FrameResult:
 
     @property
     def nu(self) -> np.ndarray | None:
-        """Each kept point's graph frequency, None when the filter is off."""
-        return None if self.frequencies is None else self.frequencies.get()[0]
+        """Each kept point's graph frequency; None when the filter is off or they failed
+        after the pose (`update_map` says so)."""
+        return self._frequencies_now()[0]
 
     @property
     def band(self) -> np.ndarray | None:
-        """Each kept point's band (0: no spectrum), None when the filter is off."""
-        return None if self.frequencies is None else self.frequencies.get()[1]
+        """Each kept point's band (0: no spectrum); None as `nu`."""
+        return self._frequencies_now()[1]
+
+    def _frequencies_now(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        if self.frequencies is None:
+            return None, None
+        try:
+            return self.frequencies.get()
+        except SpectralError:
+            return None, None
 
     @property
     def fell_back(self) -> bool:
@@ -183,9 +192,9 @@ class OdometryPipeline:
     def reset(self) -> None:
         """Re-initialise the odometry: the next scan is the first again (pose identity,
         empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
+        self.update_map()  # the last scan's work, in the run it belongs to
         self.registration.reset()
         self.frequency_source.reset()  # a local-map source holds keyframes of the old run
-        self._left_after_pose = None  # the old run's: nothing of it goes into the new one
         self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
@@ -280,8 +289,7 @@ class OdometryPipeline:
         if self.use_filter and len(cropped):
             if freqs is None and self.frequencies_after_pose:
                 # The crop keeps only finite points, so the mask keeps them all.
-                after_pose = Deferred(partial(self.frequency_source.frequencies, cropped,
-                                              self.band_mask.n_bands))
+                after_pose = Deferred(partial(self._frequencies_after_pose, cropped))
                 kept_freqs = after_pose.then(_nu_and_band)
             else:
                 if freqs is None:
@@ -333,10 +341,21 @@ class OdometryPipeline:
     @property
     def frequencies_after_pose(self) -> bool:
         """Whether a scan's frequencies are computed after its pose
-        (`pipeline.frequencies_after_pose`, and a mask that keeps every point whatever its
-        frequency: the pose does not need them)."""
+        (`pipeline.frequencies_after_pose`, a mask that keeps every point whatever its
+        frequency, and no registration option that reads them in the match: the pose does
+        not need them)."""
         return (self.config.pipeline.frequencies_after_pose
-                and self.spectral_filter.keeps_every_finite_point(self.band_mask))
+                and self.spectral_filter.keeps_every_finite_point(self.band_mask)
+                and not self.config.registration.reads_scan_frequencies_before_pose)
+
+    def _frequencies_after_pose(self, cropped: Scan) -> PointFrequencies:
+        """The frequencies of a scan whose pose is out: whatever fails in them is a
+        SpectralError, which costs the scan its frequencies, nothing else."""
+        try:
+            return self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+        except Exception as exc:
+            raise SpectralError(f'the frequencies of the scan at {cropped.stamp_ns} ns failed '
+                                f'after its pose: {exc!r}') from exc
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control
@@ -372,7 +391,8 @@ class OdometryPipeline:
         per-point data, e.g. the simulator's labels, through the crop)."""
         cfg = self.config.pipeline
         r2 = np.einsum('ij,ij->i', scan.points_xyz, scan.points_xyz)
-        keep = (r2 >= cfg.min_range_m ** 2) & (r2 <= cfg.max_range_m ** 2)
+        # A non-finite point fails the test (NaN), or is dropped (inf, max_range_m inf).
+        keep = (r2 >= cfg.min_range_m ** 2) & (r2 <= cfg.max_range_m ** 2) & np.isfinite(r2)
         index = np.flatnonzero(keep)
         if index.size > cfg.max_points_per_scan:
             stride = int(np.ceil(index.size / cfg.max_points_per_scan))
@@ -384,6 +404,7 @@ class OdometryPipeline:
     def reconfigure(self, config: GftOdomConfig) -> None:
         """Take new spectral / crop parameters at run time; registration keeps its state."""
         config.validate()
+        self.update_map()  # the last scan's work, with the settings it was registered with
         if config.registration != self.config.registration:
             raise ConfigError('registration parameters can only change before the first scan')
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
@@ -407,10 +428,8 @@ class OdometryPipeline:
             observe_s = 0.0
             try:
                 after_pose.get()  # the keyframe's smoothness and the source need them
-            except Exception as exc:  # the pose is out: the scan is not lost for this
-                log.warning('the frequencies of the scan at %d ns failed after its pose '
-                            '(%r): its keyframe, if any, is mapped without them',
-                            cropped.stamp_ns, exc)
+            except SpectralError as exc:  # the pose is out: the scan is not lost for this
+                log.warning('%s; its keyframe, if any, is mapped without them', exc)
             else:
                 t1 = time.perf_counter()
                 if T_observed is not None:
@@ -429,7 +448,7 @@ class OdometryPipeline:
         map: its reference, the last trusted scan, is returned."""
         from scipy.spatial import cKDTree
         reg = self.registration
-        reg.update_map()
+        self.update_map()
         reg.local_map.adopt()  # map_update 'background': the newest rebuild, a scan early
         points = reg.local_map.points_xyz
         if not len(points) and reg._prev_scan is not None:

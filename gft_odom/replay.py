@@ -207,7 +207,10 @@ def timing_metrics(replay: ReplayResult) -> dict:
     busy_s = replay.latency_s
     if replay.map_update_s is not None and replay.map_update_s.shape[0] == n:
         busy_s = replay.latency_s + replay.map_update_s
-        metrics['map_update_p95_ms'] = float(np.percentile(1e3 * replay.map_update_s, 95))
+        # The map's own work where the stages tell it apart from the frequencies after the
+        # pose (a replay), else all the work after the pose (the benchmark runner).
+        map_s = replay.stage_s.get('map_update', replay.map_update_s)
+        metrics['map_update_p95_ms'] = float(np.percentile(1e3 * np.asarray(map_s), 95))
     metrics.update({'busy_median_ms': float(np.median(1e3 * busy_s)),
                     'busy_p95_ms': float(np.percentile(1e3 * busy_s, 95)),
                     'busy_mean_ms': float(np.mean(1e3 * busy_s))})

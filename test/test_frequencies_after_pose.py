@@ -21,12 +21,15 @@ def row_scans():
     return [sim.scan(i).scan for i in range(N_SCANS)]
 
 
-def _run(scans, overrides=None, update_map=True):
+def _run(scans, overrides=None, update_map=True, between=None):
+    """`between(pipeline, k)`: called after scan k's pose, before its update_map."""
     pipeline = OdometryPipeline(with_values(GftOdomConfig(), overrides or {}))
     results, done_at_pose = [], []
-    for scan in scans:
+    for k, scan in enumerate(scans):
         result = pipeline.register_frame(scan)
         done_at_pose.append(result.frequencies is None or result.frequencies.done)
+        if between is not None:
+            between(pipeline, k)
         if update_map:
             pipeline.update_map()
         results.append(result)
@@ -37,7 +40,10 @@ def _map_smoothness(pipeline):
     return [s for _, _, s in pipeline.registration.local_map._keyframes]
 
 
-@pytest.mark.parametrize('overrides', [{}, {'pipeline.shuffle_frequencies': True}])
+@pytest.mark.parametrize('overrides', [
+    {}, {'pipeline.shuffle_frequencies': True},
+    {'spectral.frequency_source': 'local_map'},  # its state: frequencies, then observe
+    {'registration.map_update': 'background'}])  # the keyframe's rebuild on a thread
 def test_after_the_pose_gives_the_same_poses_frequencies_and_map(row_scans, overrides):
     after, after_results, after_done = _run(row_scans, overrides)
     before, before_results, before_done = _run(
@@ -70,14 +76,43 @@ def test_the_next_scan_finishes_what_its_caller_left(row_scans):
 
 @pytest.mark.parametrize('overrides', [
     {'spectral.band_mask': [1, 2, 3]},  # the mask drops points by their frequency
+    {'spectral.keep_isolated': False},  # ... and band-0 points
     {'registration.voxel_priority': 'smoothest'},  # the downsample reads them
+    {'registration.rough_beam_shift_m': 0.1},  # ... and moves points by them
+    {'registration.rough_kernel_scale_m': 0.6},  # the match's kernel reads them
 ])
 def test_what_needs_the_frequencies_before_the_pose_gets_them_then(row_scans, overrides):
     pipeline, results, done_at_pose = _run(row_scans[:4], overrides)
-    assert all(done_at_pose[1:])
+    assert not pipeline.frequencies_after_pose and all(done_at_pose)
     if 'spectral.band_mask' in overrides:
-        assert not pipeline.frequencies_after_pose
         assert any(r.n_points_kept < r.n_points_in for r in results)
+
+
+@pytest.mark.parametrize('step', ['reconfigure', 'reset', 'map_snapshot'])
+def test_a_call_between_a_pose_and_its_update_map_sees_the_scan_finished(row_scans, step):
+    """reconfigure, reset and map_snapshot first finish the last scan's work, in the order
+    and with the settings it was registered with."""
+    def between(pipeline, k):
+        if k == 6:
+            if step == 'reconfigure':
+                pipeline.reconfigure(pipeline.config)
+            elif step == 'reset':
+                pipeline.reset()
+            else:
+                pipeline.map_snapshot()
+
+    overrides = {'spectral.frequency_source': 'local_map'}
+    after, after_results, _ = _run(row_scans[:12], overrides, between=between)
+    before, before_results, _ = _run(
+        row_scans[:12], {**overrides, 'pipeline.frequencies_after_pose': False},
+        between=between)
+    for a, b in zip(after_results, before_results):
+        np.testing.assert_array_equal(a.T_world_sensor, b.T_world_sensor)
+        np.testing.assert_array_equal(a.nu, b.nu)
+    for a, b in zip(_map_smoothness(after), _map_smoothness(before)):
+        np.testing.assert_array_equal(a, b)
+    assert len(after.frequency_source._keyframes) == len(before.frequency_source._keyframes)
+    assert after.frequency_source.keyframe_updates == before.frequency_source.keyframe_updates
 
 
 def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplog):
@@ -96,9 +131,10 @@ def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplo
     for scan in row_scans[:8]:
         results.append(pipeline.register_frame(scan))
         pipeline.update_map()
-    assert 'failed after its pose' in caplog.text and 'without its smoothness' in caplog.text
-    with pytest.raises(ValueError, match='broken spectrum'):
-        results[1].nu
+    assert 'failed after its pose' in caplog.text and 'broken spectrum' in caplog.text
+    assert results[1].nu is None and results[1].band is None  # that scan's only
+    points, nu = pipeline.map_snapshot(results[1])  # the node's ~/save_map after it
+    assert points.shape[0] and np.isnan(nu).all()
     first_keyframe = _map_smoothness(pipeline)[0]
     assert first_keyframe.size and np.isnan(first_keyframe).all()
     _, normal, _ = _run(row_scans[:8])

@@ -77,7 +77,7 @@ from gft_odom.core.residuals import smoothness_from_nu
 from gft_odom.core.trust import TrustPolicy
 from gft_odom.core.uncertainty import PoseUncertainty, world_information
 from gft_odom.core.uncertainty import in_world_axes as in_world_axes
-from gft_odom.errors import RegistrationError
+from gft_odom.errors import RegistrationError, SpectralError
 
 log = logging.getLogger(__name__)
 
@@ -600,9 +600,7 @@ def _smoothness_or_unknown(smoothness: np.ndarray | Deferred | None, n_points: i
     keyframe still goes into the map, as it would without frequencies."""
     try:
         return resolved(smoothness)
-    except Exception as exc:  # what a frequency computation raised, told once per keyframe
-        log.warning('a keyframe goes into the map without its smoothness: its frequencies '
-                    'failed (%r)', exc)
+    except SpectralError:  # its caller said so (OdometryPipeline.update_map)
         return np.full(n_points, np.nan)
 
 

@@ -437,6 +437,15 @@ class RegistrationConfig:
                 and self.resolved_estimation == 'point_to_plane')
 
     @property
+    def reads_scan_frequencies_before_pose(self) -> bool:
+        """Whether a scan's match reads its own frequencies (else only its keyframe does,
+        after the pose): the options of `ScanRegistration._downsample` and the ICP backend
+        that read them."""
+        return (self.voxel_priority == 'smoothest' or self.residual_model == 'frequency'
+                or self.rough_beam_shift_m != 0.0 or self.rough_kernel_scale_m > 0.0
+                or self.frequency_affinity_m > 0.0)
+
+    @property
     def resolved_map_update(self) -> str:
         """'inline' or 'background', what 'auto' stands for with these settings."""
         if self.map_update != 'auto':

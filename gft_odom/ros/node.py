@@ -383,15 +383,14 @@ class FilterOdomNode(Node):
                                       T_base_sensor, step_s))
 
     def _publish(self, result: FrameResult, header) -> float:
-        """Publish the scan's odometry, transform and cloud; when the odometry went out
-        (`time.perf_counter`): the latency the node reports ends there."""
+        """Publish the scan's odometry, transform and cloud; when the odometry and the
+        transform were out (`time.perf_counter`): the latency the node reports ends there."""
         node_cfg = self.config.node
         stamp_ns = result.stamp_ns
         twist, twist_cov = self.twist_of(result)
         odom = odometry_msg(result.T_odom_base, stamp_ns, node_cfg.odom_frame,
                             node_cfg.base_frame, result.covariance, twist, twist_cov)
         self.odom_pub.publish(odom)
-        odometry_out_s = time.perf_counter()
         if result.information is not None:
             # The information is in the world (first sensor) axes: into base_link's.
             R_base_world = (self.pipeline.T_base_sensor[:3, :3]
@@ -408,6 +407,7 @@ class FilterOdomNode(Node):
         if self.tf_pub is not None:
             self.tf_pub.send(transform_msg(result.T_odom_base, stamp_ns, node_cfg.odom_frame,
                                            node_cfg.base_frame))
+        odometry_out_s = time.perf_counter()
         if node_cfg.publish_filtered_points and self.cloud_pub.get_subscription_count() > 0:
             scan = result.filtered
             columns = {'x': scan.points_xyz[:, 0].astype(np.float32),
@@ -415,15 +415,10 @@ class FilterOdomNode(Node):
                        'z': scan.points_xyz[:, 2].astype(np.float32),
                        'intensity': (scan.intensity if scan.intensity is not None
                                      else np.zeros(len(scan), np.float32)).astype(np.float32)}
-            try:  # computed now when they come after the pose (the odometry is out)
-                nu, band = result.nu, result.band
-            except Exception as exc:
-                self._warn('failed', f'scan at {stamp_ns} ns: its cloud goes out without '
-                           f'frequencies ({exc!r})')
-                nu = band = None
+            nu = result.nu  # computed now when they come after the pose (the odometry is out)
             if nu is not None:
                 columns['frequency'] = nu.astype(np.float32)
-                columns['band'] = band.astype(np.uint8)
+                columns['band'] = result.band.astype(np.uint8)
             self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), stamp_ns, header.frame_id))
         return odometry_out_s
 

@@ -36,3 +36,16 @@ def test_a_failed_computation_raises_again_without_running_again():
         with pytest.raises(ValueError, match='no spectrum'):
             value.get()
     assert calls == [1] and not value.done
+
+
+def test_a_deep_copy_keeps_what_was_computed_and_shares_what_was_not():
+    import copy
+
+    import numpy as np
+    computed = Deferred(lambda: np.arange(3))
+    computed.get()
+    twin = copy.deepcopy(computed)
+    assert twin.done and twin.get() is not computed.get()
+    np.testing.assert_array_equal(twin.get(), computed.get())
+    pending = Deferred(lambda: np.arange(4))
+    assert copy.deepcopy(pending) is pending and not pending.done
