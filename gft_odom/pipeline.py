@@ -138,13 +138,6 @@ def _nu_and_band(freqs: PointFrequencies) -> tuple[np.ndarray, np.ndarray]:
     return freqs.nu, freqs.band
 
 
-def _computed(value) -> Deferred:
-    """A `Deferred` already holding `value`."""
-    ready = Deferred(lambda: value)
-    ready.get()
-    return ready
-
-
 def thinnest_axis_std_m(points_xyz: np.ndarray) -> float:
     """Standard deviation of the points along their thinnest principal axis (inf if < 10)."""
     if points_xyz.shape[0] < 10:
@@ -296,10 +289,10 @@ class OdometryPipeline:
                     freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
                 keep = self._precomputed_keep(cropped, freqs)
                 if keep.all():  # all-pass: no copy of the scan
-                    kept_freqs = _computed((freqs.nu, freqs.band))
+                    kept_freqs = Deferred.of((freqs.nu, freqs.band))
                 else:
                     kept = cropped.select(keep)
-                    kept_freqs = _computed((freqs.nu[keep], freqs.band[keep]))
+                    kept_freqs = Deferred.of((freqs.nu[keep], freqs.band[keep]))
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
         flat_std_m = thinnest_axis_std_m(kept.points_xyz)

@@ -25,6 +25,13 @@ class Deferred:
         self._error: Exception | None = None
         self.seconds = 0.0  # what the computation took (0 until it ran)
 
+    @classmethod
+    def of(cls, value: Any) -> 'Deferred':
+        """A `Deferred` already holding `value` (for a reader that takes either kind)."""
+        ready = cls(lambda: value)
+        ready.get()
+        return ready
+
     @property
     def done(self) -> bool:
         """Whether the value has been computed."""
@@ -56,8 +63,7 @@ class Deferred:
         would copy whatever it reads, e.g. a whole frequency source)."""
         if not self._done:
             return self
-        twin = Deferred(lambda: None)
-        twin._done, twin._value, twin._compute = True, copy.deepcopy(self._value, memo), None
+        twin = Deferred.of(copy.deepcopy(self._value, memo))
         twin.seconds = self.seconds
         return twin
 
