@@ -60,6 +60,8 @@ class IcpBackend:
             max_iteration=RECOVERY_ITERATIONS_FACTOR * config.max_iterations)
         # The paper's ICP is plain least squares; ours is robust.
         kernel_name = 'none' if config.mode == 'paper' else config.robust_kernel
+        self._kernel_name = kernel_name
+        self.kernel_scale_m = config.robust_kernel_scale_m  # adaptive_kernel_ratio: per scan
         self.kernel = robust_kernel(kernel_name, config.robust_kernel_scale_m)
         local_map.with_normals = self.estimation == 'point_to_plane'
         local_map.with_covariances = self.estimation == 'gicp'
@@ -82,7 +84,9 @@ class IcpBackend:
             self.map_tree = MapTreeICP(kernel_name, config.robust_kernel_scale_m,
                                        config.convergence_relative, config.convergence_relative,
                                        config.max_iterations,
-                                       anderson_memory=config.anderson_memory)
+                                       anderson_memory=config.anderson_memory,
+                                       anneal_from_m=config.kernel_anneal_from_m,
+                                       anneal_factor=config.kernel_anneal_factor)
         if self.solves_on_map_target:
             # 'on_demand': the map's target estimates the normals its pairs use.
             local_map.with_normals = config.map_normals == 'rebuild'
@@ -92,6 +96,15 @@ class IcpBackend:
         # Deferred is computed only when one of them reads it); set per scan.
         self.source_smoothness: np.ndarray | None = None
         self.point_smoothness: np.ndarray | Deferred | None = None
+
+    def use_kernel_scale(self, scale_m: float) -> None:
+        """The robust kernel's scale for the matches that follow, in every solver."""
+        self.kernel_scale_m = scale_m
+        self.kernel = robust_kernel(self._kernel_name, scale_m)
+        if self.map_tree is not None:
+            self.map_tree.kernel_scale_m = scale_m
+        if self.solver is not None:
+            self.solver.kernel_scale_m = scale_m
 
     def use_smoothness(self, source_smoothness: np.ndarray | None,
                        point_smoothness: np.ndarray | Deferred | None) -> None:
@@ -107,14 +120,14 @@ class IcpBackend:
         return resolved(self.point_smoothness)
 
     def _point_kernel_scale_m(self) -> np.ndarray | None:
-        """Each scan point's kernel scale, from robust_kernel_scale_m where it is smooth to
+        """Each scan point's kernel scale, from the kernel's scale where it is smooth to
         rough_kernel_scale_m where it is rough (None: one scale for all; so without
         frequencies)."""
         rough_m = self.config.rough_kernel_scale_m
         if rough_m <= 0.0 or self.point_smoothness is None:
             return None
         s = np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
-        return rough_m + (self.config.robust_kernel_scale_m - rough_m) * s
+        return rough_m + (self.kernel_scale_m - rough_m) * s
 
     @property
     def solves_on_map_target(self) -> bool:

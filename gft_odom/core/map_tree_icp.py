@@ -62,9 +62,16 @@ class MapTreeICP:
 
     def __init__(self, kernel: str = 'tukey', kernel_scale_m: float = 0.3,
                  relative_fitness: float = 1e-6, relative_rmse: float = 1e-6,
-                 max_iterations: int = 30, anderson_memory: int = 0) -> None:
+                 max_iterations: int = 30, anderson_memory: int = 0,
+                 anneal_from_m: float = 0.0, anneal_factor: float = 0.7) -> None:
         self.kernel = kernel
         self.kernel_scale_m = kernel_scale_m
+        # Graduated kernel (`anneal_from_m` > 0): iteration i weighs residuals with the scale
+        # max(kernel_scale_m, anneal_from_m x anneal_factor^i), so that a guess further off
+        # than the kernel is still pulled in, and the end is weighed as without it.
+        self.anneal_from_m = anneal_from_m
+        self.anneal_factor = anneal_factor
+        self._anneal = 1.0  # this iteration's factor on every scale
         self.relative_fitness = relative_fitness
         self.relative_rmse = relative_rmse
         self.max_iterations = max_iterations
@@ -91,6 +98,7 @@ class MapTreeICP:
         self.n_accelerated = 0  # accepted Anderson proposals of the last call
         used = 0
         for used in range(1, iterations + 1):
+            self._anneal = self._anneal_at(used - 1)
             update = self._update(world, target, pairs)
             previous = (fitness, rmse)
             step = None
@@ -114,10 +122,18 @@ class MapTreeICP:
                     energy = self._energy(world, target, pairs, max_distance_m)
             else:
                 T, world, pairs, fitness, rmse = step
-            if (abs(previous[0] - fitness) < self.relative_fitness
+            if (self._anneal == 1.0 and abs(previous[0] - fitness) < self.relative_fitness
                     and abs(previous[1] - rmse) < self.relative_rmse):
-                break
+                break  # (a graduated kernel first reaches its end)
+        self._anneal = 1.0
         return IcpResult(T, fitness, rmse, pairs, None, used)
+
+    def _anneal_at(self, iteration: int) -> float:
+        """The graduated kernel's factor on the scale at `iteration` (1: none)."""
+        if self.anneal_from_m <= self.kernel_scale_m:
+            return 1.0
+        return max(1.0, self.anneal_from_m * self.anneal_factor ** iteration
+                   / self.kernel_scale_m)
 
     def _energy(self, world: np.ndarray, target: MapTarget, pairs: np.ndarray,
                 max_distance_m: float) -> float:
@@ -132,8 +148,8 @@ class MapTreeICP:
     def _scale(self, pairs: np.ndarray) -> float | np.ndarray:
         """The kernel scale of each pair (one for all when no point has its own)."""
         if self._point_scale_m is None:
-            return self.kernel_scale_m
-        return self._point_scale_m[pairs[:, 0]]
+            return self.kernel_scale_m * self._anneal
+        return self._point_scale_m[pairs[:, 0]] * self._anneal
 
     @staticmethod
     def _correspond(world: np.ndarray, nearest: 'ExactNearest'):

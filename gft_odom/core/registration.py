@@ -74,6 +74,7 @@ from gft_odom.core.motion_model import twist_of as twist_of
 from gft_odom.core.recovery import Match, Recovery, fitted_match
 from gft_odom.core.registration_config import RegistrationConfig as RegistrationConfig
 from gft_odom.core.residuals import smoothness_from_nu
+from gft_odom.core.threshold import AdaptiveThreshold
 from gft_odom.core.trust import TrustPolicy
 from gft_odom.core.uncertainty import PoseUncertainty, world_information
 from gft_odom.core.uncertainty import in_world_axes as in_world_axes
@@ -206,6 +207,12 @@ class ScanRegistration:
         self.trust = TrustPolicy(config, self.motion)
         self.uncertainty = PoseUncertainty.from_config(config)
         self.recovery = Recovery(config, self.icp, self.motion, self.trust, self.local_map)
+        # adaptive_kernel_ratio: the kernel's scale follows the prediction errors, and
+        # starts at the fixed one.
+        self.threshold = (AdaptiveThreshold(
+            config.robust_kernel_scale_m / config.adaptive_kernel_ratio,
+            config.adaptive_min_motion_m, config.map_max_range_m, config.adaptive_window_scans)
+            if config.adaptive_kernel_ratio > 0.0 else None)
         self.deskew = config.deskew and config.mode == 'default'
         self._background_map = (config.resolved_map_update == 'background'
                                 and self.icp.solves_on_map_target)
@@ -221,6 +228,9 @@ class ScanRegistration:
         self.motion.reset()
         self.trust.reset()
         self.recovery.reset()
+        if self.threshold is not None:
+            self.threshold.reset()
+            self.icp.use_kernel_scale(self.config.robust_kernel_scale_m)
         self.n_registered = 0
         self.n_turn_continued = 0  # matches turn_continue_min_rad carried on
         self._prev_scan: o3d.geometry.PointCloud | None = None  # paper mode's target
@@ -316,6 +326,10 @@ class ScanRegistration:
         # are not matched).
         status, T_new, match, refused = self._match_or_reacquire(sweep, T_pred, stamp_ns,
                                                                  timings)
+        if self.threshold is not None and status == 'ok':
+            self.threshold.observe(T_pred, T_new)
+            self.icp.use_kernel_scale(self.config.adaptive_kernel_ratio
+                                      * self.threshold.sigma_m)
         # 5. A trusted scan is deskewed again with its own motion: the map gets that cloud.
         self._redeskew(sweep, stamp_ns, status, T_new)
         # 6-8. Trust the pose or count a fallback, update the map, the result.

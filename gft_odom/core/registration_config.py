@@ -71,6 +71,26 @@ class RegistrationConfig:
     # linearly to robust_kernel_scale_m at smoothness 1 (ground, trunks). 0: every pair
     # robust_kernel_scale_m (also without frequencies). Session 18 study, docs/registration.md.
     rough_kernel_scale_m: float = 0.0
+    # The Tukey scale follows how far the motion model's predictions have been off
+    # (core/threshold.py, kiss-icp's adaptive threshold): this times the root mean square of
+    # the trusted matches' prediction errors at map_max_range_m, errors under
+    # adaptive_min_motion_m not counted; robust_kernel_scale_m until one is. 0: off, the
+    # fixed scale. The correspondence gate stays max_correspondence_distance_m (the trust
+    # policy's fitness is the share of points within it). Off: on the training drives it lost
+    # track on one or more at every ratio and window tried (the errors measure how a route
+    # turns, not its surfaces' noise; session 33, docs/registration.md).
+    adaptive_kernel_ratio: float = 0.0
+    adaptive_min_motion_m: float = 0.1
+    # The mean is over the last this many counted matches (0: all of them, as kiss-icp).
+    adaptive_window_scans: int = 0
+    # Solver 'map_tree': a graduated kernel. Iteration i of a match weighs its residuals with
+    # the scale max(the kernel's, kernel_anneal_from_m x kernel_anneal_factor^i), so that a
+    # guess further off than the kernel (a turn's onset) is still pulled in, while the end of
+    # the match is weighed as without it. 0: off. From 1.0 m to a 0.2 m scale it was 2.2 %
+    # better on the training drives and 21 % worse on the ten record drives (0.0614 ->
+    # 0.0740 m; session 33, docs/registration.md).
+    kernel_anneal_from_m: float = 0.0
+    kernel_anneal_factor: float = 0.7
     # Each source point moved along its beam by this times (1 - smoothness), before the
     # match and into the map (positive: away from the sensor; unknown smoothness: not
     # moved; without frequencies nothing moves). Session 22 study, docs/registration.md:
@@ -365,6 +385,12 @@ class RegistrationConfig:
         if self.residual_model != 'plane' and self.solver != 'gauss_newton':
             raise ConfigError(f"residual_model {self.residual_model!r} needs solver "
                               f"'gauss_newton' (open3d's ICP has one residual type)")
+        if self.kernel_anneal_from_m > 0.0 and (self.solver != 'map_tree'
+                                                or self.mode != 'default'):
+            raise ConfigError("kernel_anneal_from_m needs mode 'default' and solver 'map_tree'")
+        if not 0.0 < self.kernel_anneal_factor < 1.0:
+            raise ConfigError('kernel_anneal_factor must be in (0, 1), got '
+                              f'{self.kernel_anneal_factor}')
         if self.anderson_memory and self.solver != 'map_tree':
             raise ConfigError("anderson_memory needs solver 'map_tree'")
         if self.turn_continue_min_rad > 0.0 and (self.mode != 'default'
@@ -372,12 +398,16 @@ class RegistrationConfig:
             raise ConfigError("turn_continue_min_rad needs mode 'default' and solver "
                               "'map_tree' or 'gauss_newton' (open3d's ICP does not say "
                               "whether its iteration cap stopped it)")
+        if self.adaptive_kernel_ratio > 0.0 and self.mode != 'default':
+            raise ConfigError("adaptive_kernel_ratio needs mode 'default' (the paper's ICP "
+                              "has no robust kernel)")
         if self.frequency_affinity_m > 0.0 and self.solver != 'gauss_newton':
             raise ConfigError("frequency_affinity_m needs solver 'gauss_newton' (open3d's "
                               "ICP pairs by distance alone)")
         for name in ('motion_prior_weight', 'frequency_affinity_m', 'rough_weight',
                      'motion_margin', 'rough_kernel_scale_m', 'turn_check_gate_m',
-                     'turn_continue_min_rad'):
+                     'turn_continue_min_rad', 'adaptive_kernel_ratio',
+                     'adaptive_min_motion_m', 'kernel_anneal_from_m'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ConfigError(f'{name} must be a finite number >= 0, got {value}')
@@ -403,7 +433,7 @@ class RegistrationConfig:
                    'normal_neighbours': 5, 'min_points': 3, 'max_consecutive_fallbacks': 1,
                    'deskew_velocity_window': 1, 'recovery_yaw_guesses': 0,
                    'anderson_memory': 0, 'turn_check_screen_iterations': 0,
-                   'turn_continue_iterations': 1}
+                   'turn_continue_iterations': 1, 'adaptive_window_scans': 0}
         for name, lowest in minimum.items():
             if getattr(self, name) < lowest:
                 raise ConfigError(f'{name} must be >= {lowest}, got {getattr(self, name)}')

@@ -431,3 +431,33 @@ def test_rough_kernel_scale_follows_the_frequency_and_needs_map_tree():
     np.testing.assert_allclose(backend._point_kernel_scale_m(), [0.3, 0.1, 0.2, 0.1])
     backend.use_smoothness(None, None)  # no frequencies: one scale for all
     assert backend._point_kernel_scale_m() is None
+
+
+def test_a_graduated_kernel_pulls_in_a_guess_beyond_the_kernel_and_ends_as_without_it(scene):
+    target, source = scene
+    # The truth is 0.34 m and 4 deg from identity: a Tukey scale of 0.1 m gives most pairs
+    # zero weight from there.
+    tight = MapTreeICP('tukey', 0.1, 1e-6, 1e-6, 60)
+    stuck = tight.register(source, target, np.eye(4), 1.0)
+    graduated = MapTreeICP('tukey', 0.1, 1e-6, 1e-6, 60, anneal_from_m=1.0, anneal_factor=0.8)
+    pulled = graduated.register(source, target, np.eye(4), 1.0)
+    error_stuck = np.linalg.norm(stuck.transformation[:3, 3] - T_TRUE[:3, 3])
+    error_pulled = np.linalg.norm(pulled.transformation[:3, 3] - T_TRUE[:3, 3])
+    assert error_pulled < 0.02 < error_stuck, (error_pulled, error_stuck)
+    # Its last iterations weigh as the plain kernel: from the truth both end at one pose.
+    near = make_transform(translation=[0.01, 0.0, 0.0]) @ T_TRUE
+    plain_end = MapTreeICP('tukey', 0.1, 1e-9, 1e-9, 60).register(source, target, near, 1.0)
+    graduated_end = graduated.register(source, target, near, 1.0)
+    np.testing.assert_allclose(graduated_end.transformation, plain_end.transformation,
+                               atol=2e-3)
+    assert graduated._anneal == 1.0  # nothing left over for the next call
+
+
+def test_the_graduated_kernels_schedule():
+    icp = MapTreeICP('tukey', 0.3, anneal_from_m=1.2, anneal_factor=0.5)
+    assert [icp._anneal_at(i) for i in range(4)] == pytest.approx([4.0, 2.0, 1.0, 1.0])
+    assert MapTreeICP('tukey', 0.3)._anneal_at(0) == 1.0
+    for bad in ({'kernel_anneal_from_m': 1.0, 'solver': 'open3d'},
+                {'kernel_anneal_factor': 1.0}, {'kernel_anneal_from_m': -1.0}):
+        with pytest.raises(ConfigError, match='kernel_anneal'):
+            RegistrationConfig(**bad).validate()

@@ -1365,3 +1365,38 @@ def test_a_match_capped_while_still_turning_carries_on(static_pair, min_rad, con
     for other in ({'solver': 'open3d'}, {'mode': 'paper'}):  # their ICP does not say
         with pytest.raises(ConfigError, match='turn_continue_min_rad'):
             RegistrationConfig(turn_continue_min_rad=0.02, **other).validate()
+
+
+# ---------------------------------------------------------------- adaptive kernel
+
+def _kernel_scales(registration: ScanRegistration, scans: list[dict]) -> list[float]:
+    scales = []
+    for scan in scans:
+        registration.register(scan['points'], scan['stamp_ns'], scan['time'])
+        scales.append(registration.icp.kernel_scale_m)
+    return scales
+
+
+@pytest.mark.parametrize('solver', ['map_tree', 'gauss_newton'])
+def test_the_kernel_follows_the_prediction_errors_and_starts_over_at_reset(drive, solver):
+    scans = drive[:8]
+    cfg = dataclasses.replace(RegistrationConfig(), solver=solver, adaptive_kernel_ratio=0.5,
+                              adaptive_min_motion_m=0.0)
+    registration = ScanRegistration(cfg)
+    scales = _kernel_scales(registration, scans)
+    # The first scan has no match and the second starts from no velocity: the fixed scale
+    # until a match is counted, then half the RMS of the errors at the map's range.
+    assert scales[0] == cfg.robust_kernel_scale_m
+    assert registration.threshold.n_samples >= 5
+    assert scales[-1] == pytest.approx(0.5 * registration.threshold.sigma_m)
+    assert scales[-1] != pytest.approx(cfg.robust_kernel_scale_m, abs=1e-3)
+    # The solver that matches uses it.
+    matcher = registration.icp.map_tree or registration.icp.solver
+    assert matcher.kernel_scale_m == scales[-1]
+    registration.reset()
+    assert registration.icp.kernel_scale_m == cfg.robust_kernel_scale_m
+    assert registration.threshold.n_samples == 0
+    # Off: the scale never moves.
+    fixed = _kernel_scales(ScanRegistration(dataclasses.replace(cfg, adaptive_kernel_ratio=0.0)),
+                           scans)
+    assert set(fixed) == {cfg.robust_kernel_scale_m}
