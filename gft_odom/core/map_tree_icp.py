@@ -97,35 +97,37 @@ class MapTreeICP:
         energy = self._energy(world, target, pairs, max_distance_m) if anderson else 0.0
         self.n_accelerated = 0  # accepted Anderson proposals of the last call
         used = 0
-        for used in range(1, iterations + 1):
-            self._anneal = self._anneal_at(used - 1)
-            update = self._update(world, target, pairs)
-            previous = (fitness, rmse)
-            step = None
-            if anderson is not None:
-                proposal = anderson.propose(T, update @ T)
-                if proposal is not None:
-                    tried = source_xyz @ proposal[:3, :3].T + proposal[:3, 3]
-                    step = (proposal, tried) + self._correspond(tried, nearest)
-                    tried_energy = self._energy(tried, target, step[2], max_distance_m)
-                    if tried_energy < energy:
-                        energy = tried_energy
-                        self.n_accelerated += 1
-                    else:
-                        anderson.restart()
-                        step = None
-            if step is None:
-                T = update @ T
-                world = world @ update[:3, :3].T + update[:3, 3]
-                pairs, fitness, rmse = self._correspond(world, nearest)
+        try:
+            for used in range(1, iterations + 1):
+                self._anneal = self._anneal_at(used - 1)
+                update = self._update(world, target, pairs)
+                previous = (fitness, rmse)
+                step = None
                 if anderson is not None:
-                    energy = self._energy(world, target, pairs, max_distance_m)
-            else:
-                T, world, pairs, fitness, rmse = step
-            if (self._anneal == 1.0 and abs(previous[0] - fitness) < self.relative_fitness
-                    and abs(previous[1] - rmse) < self.relative_rmse):
-                break  # (a graduated kernel first reaches its end)
-        self._anneal = 1.0
+                    proposal = anderson.propose(T, update @ T)
+                    if proposal is not None:
+                        tried = source_xyz @ proposal[:3, :3].T + proposal[:3, 3]
+                        step = (proposal, tried) + self._correspond(tried, nearest)
+                        tried_energy = self._energy(tried, target, step[2], max_distance_m)
+                        if tried_energy < energy:
+                            energy = tried_energy
+                            self.n_accelerated += 1
+                        else:
+                            anderson.restart()
+                            step = None
+                if step is None:
+                    T = update @ T
+                    world = world @ update[:3, :3].T + update[:3, 3]
+                    pairs, fitness, rmse = self._correspond(world, nearest)
+                    if anderson is not None:
+                        energy = self._energy(world, target, pairs, max_distance_m)
+                else:
+                    T, world, pairs, fitness, rmse = step
+                if (self._anneal == 1.0 and abs(previous[0] - fitness) < self.relative_fitness
+                        and abs(previous[1] - rmse) < self.relative_rmse):
+                    break  # (a graduated kernel first reaches its end)
+        finally:
+            self._anneal = 1.0  # none left over for the next call, whatever ends this one
         return IcpResult(T, fitness, rmse, pairs, None, used)
 
     def _anneal_at(self, iteration: int) -> float:

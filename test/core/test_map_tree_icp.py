@@ -450,14 +450,41 @@ def test_a_graduated_kernel_pulls_in_a_guess_beyond_the_kernel_and_ends_as_witho
     graduated_end = graduated.register(source, target, near, 1.0)
     np.testing.assert_allclose(graduated_end.transformation, plain_end.transformation,
                                atol=2e-3)
-    assert graduated._anneal == 1.0  # nothing left over for the next call
+
+
+def test_a_graduated_match_does_not_stop_before_its_kernel_is_the_plain_one(scene):
+    target, source = scene
+    # From the truth a plain match stops at once; the graduated one (1.0 -> 0.1 m by halves:
+    # iterations 0-3 wider, the plain scale from iteration 4) goes on to weigh as the plain.
+    plain = MapTreeICP('tukey', 0.1, 1e-4, 1e-4, 30).register(source, target, T_TRUE, 1.0)
+    graduated = MapTreeICP('tukey', 0.1, 1e-4, 1e-4, 30, anneal_from_m=1.0,
+                           anneal_factor=0.5).register(source, target, T_TRUE, 1.0)
+    assert plain.n_iterations < 5 <= graduated.n_iterations, (plain.n_iterations,
+                                                               graduated.n_iterations)
 
 
 def test_the_graduated_kernels_schedule():
     icp = MapTreeICP('tukey', 0.3, anneal_from_m=1.2, anneal_factor=0.5)
     assert [icp._anneal_at(i) for i in range(4)] == pytest.approx([4.0, 2.0, 1.0, 1.0])
     assert MapTreeICP('tukey', 0.3)._anneal_at(0) == 1.0
+    RegistrationConfig(kernel_anneal_from_m=1.0).validate()
     for bad in ({'kernel_anneal_from_m': 1.0, 'solver': 'open3d'},
+                {'kernel_anneal_from_m': 1.0, 'estimation': 'gicp'},
+                {'kernel_anneal_from_m': 1.0, 'anderson_memory': 3},
+                {'kernel_anneal_from_m': 1.0, 'rough_kernel_scale_m': 0.1},
+                {'kernel_anneal_from_m': 1.0, 'turn_continue_min_rad': 0.02},
+                {'kernel_anneal_from_m': 1.0, 'turn_check_screen_iterations': 10},
+                {'kernel_anneal_from_m': 0.2},  # not above the kernel's 0.3 m
+                {'kernel_anneal_from_m': 1.0, 'kernel_anneal_factor': 0.97},  # 40 iterations
                 {'kernel_anneal_factor': 1.0}, {'kernel_anneal_from_m': -1.0}):
-        with pytest.raises(ConfigError, match='kernel_anneal'):
+        with pytest.raises(ConfigError, match='kernel_anneal|graduated'):
             RegistrationConfig(**bad).validate()
+
+
+def test_a_failed_graduated_match_leaves_no_wide_kernel_behind(scene, monkeypatch):
+    target, source = scene
+    icp = MapTreeICP('tukey', 0.1, anneal_from_m=1.0, anneal_factor=0.5)
+    monkeypatch.setattr(icp, '_update', lambda *args: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        icp.register(source, target, np.eye(4), 1.0)
+    assert icp._anneal == 1.0

@@ -1377,22 +1377,24 @@ def _kernel_scales(registration: ScanRegistration, scans: list[dict]) -> list[fl
     return scales
 
 
-@pytest.mark.parametrize('solver', ['map_tree', 'gauss_newton'])
+@pytest.mark.parametrize('solver', ['map_tree', 'gauss_newton', 'open3d'])
 def test_the_kernel_follows_the_prediction_errors_and_starts_over_at_reset(drive, solver):
     scans = drive[:8]
     cfg = dataclasses.replace(RegistrationConfig(), solver=solver, adaptive_kernel_ratio=0.5,
-                              adaptive_min_motion_m=0.0)
+                              adaptive_min_motion_m=0.001)
     registration = ScanRegistration(cfg)
     scales = _kernel_scales(registration, scans)
-    # The first scan has no match and the second starts from no velocity: the fixed scale
-    # until a match is counted, then half the RMS of the errors at the map's range.
+    # The first scan is not matched: the fixed scale; from the second match on, half the
+    # RMS of the prediction errors at the map's range.
     assert scales[0] == cfg.robust_kernel_scale_m
     assert registration.threshold.n_samples >= 5
     assert scales[-1] == pytest.approx(0.5 * registration.threshold.sigma_m)
     assert scales[-1] != pytest.approx(cfg.robust_kernel_scale_m, abs=1e-3)
-    # The solver that matches uses it.
-    matcher = registration.icp.map_tree or registration.icp.solver
-    assert matcher.kernel_scale_m == scales[-1]
+    # The solver that matches uses it (open3d: its Tukey loss object).
+    icp = registration.icp
+    assert icp.kernel.k == pytest.approx(scales[-1])
+    if solver != 'open3d':
+        assert (icp.map_tree or icp.solver).kernel_scale_m == scales[-1]
     registration.reset()
     assert registration.icp.kernel_scale_m == cfg.robust_kernel_scale_m
     assert registration.threshold.n_samples == 0

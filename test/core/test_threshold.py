@@ -48,11 +48,12 @@ def test_invalid_values_are_refused(field, value):
         dataclasses.replace(RegistrationConfig(), **{field: value}).validate()
 
 
-def test_the_paper_mode_has_no_kernel_to_adapt():
+@pytest.mark.parametrize('other', [{'mode': 'paper'}, {'robust_kernel': 'none'},
+                                   {'adaptive_min_motion_m': 0.0}])
+def test_a_kernel_without_a_scale_or_a_scale_without_a_floor_is_refused(other):
     with pytest.raises(ConfigError, match='adaptive_kernel_ratio'):
-        dataclasses.replace(RegistrationConfig(), mode='paper',
-                            adaptive_kernel_ratio=0.3).validate()
-
+        dataclasses.replace(RegistrationConfig(), adaptive_kernel_ratio=0.3,
+                            **other).validate()
 
 
 def test_a_window_forgets_the_older_errors():
