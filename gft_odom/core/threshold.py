@@ -21,14 +21,15 @@ from collections import deque
 
 import numpy as np
 
+from gft_odom.core.geometry import invert_transform
+from gft_odom.core.motion_model import transform_magnitude
+
 
 def prediction_error_m(T_pred: np.ndarray, T_est: np.ndarray, range_m: float) -> float:
     """How far the prediction `T_pred` moved a point at `range_m` from where the estimate
     `T_est` puts it, at most: |t| + 2 r sin(theta / 2) of the deviation T_pred^-1 T_est."""
-    R = T_pred[:3, :3].T @ T_est[:3, :3]
-    t = T_pred[:3, :3].T @ (T_est[:3, 3] - T_pred[:3, 3])
-    cos_theta = min(max((float(np.trace(R)) - 1.0) / 2.0, -1.0), 1.0)
-    return float(np.linalg.norm(t)) + 2.0 * range_m * math.sin(math.acos(cos_theta) / 2.0)
+    translation_m, angle_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
+    return translation_m + 2.0 * range_m * math.sin(angle_rad / 2.0)
 
 
 class AdaptiveThreshold:
