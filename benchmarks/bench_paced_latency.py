@@ -42,6 +42,8 @@ ENTRIES = (
           (('registration.map_update', 'background'),)),
     Entry('gft_odom, map normals on demand', 'default+gft',
           (('registration.map_normals', 'on_demand'),)),
+    Entry('gft_odom, map normals in time', 'default+gft',
+          (('registration.map_normals', 'in_time'),)),
     Entry('gft_odom, turn-check screen (session 26 default)', 'default+gft',
           (('registration.turn_check_screen_iterations', 10),)),
     Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),

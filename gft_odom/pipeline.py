@@ -59,6 +59,9 @@ TRIM_AFTER_POINTS = 500_000
 # deskew, one trim left +12 MB against a normal scan, three +12 MB, twenty +3.5 MB; a trim
 # costs ~0.01 ms).
 TRIMS_AFTER_A_LARGE_SCAN = 20
+# A scan whose work began this long after the work before it ended did not wait behind it
+# (the node's callback, or a caller's decoding, takes a few ms in between).
+IDLE_BEFORE_A_SCAN_S = 0.01
 
 
 def _malloc_trim():
@@ -180,6 +183,10 @@ class OdometryPipeline:
         # What the last scan left for `update_map`: (its deferred frequencies or None, the
         # cropped scan, the pose the frequency source observes or None, its timings).
         self._left_after_pose: tuple | None = None
+        # When the last scan arrived, as far as the pipeline can tell (`_note_arrival`):
+        # (perf_counter seconds, its stamp in ns), None before the first.
+        self._arrival: tuple[float, int] | None = None
+        self._work_ended_s = -np.inf  # when the last scan's work (and its map's) ended
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -262,8 +269,9 @@ class OdometryPipeline:
         """One scan through acceptance, crop, filter, registration. `freqs`: frequencies of the
         cropped scan computed earlier (the band search re-filters them with many masks).
         A rejected scan gives a result with status 'rejected_<reason>' and the last pose."""
-        self.update_map()  # the previous scan's, when its caller did not
+        self.update_map(next_scan_due_s=time.perf_counter())  # the previous scan's, late
         t0 = time.perf_counter()
+        self._note_arrival(t0, int(scan.stamp_ns))
         if self._trims_pending:
             release_free_memory()
             self._trims_pending -= 1
@@ -405,10 +413,12 @@ class OdometryPipeline:
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 
-    def update_map(self) -> float:
+    def update_map(self, next_scan_due_s: float | None = None) -> float:
         """The work the last `register_frame` left after its pose: its frequencies (when
         they come after the pose, and nobody read them yet) and a keyframe's map rebuild
-        (its normals and KD-tree); the seconds it took.
+        (its normals and KD-tree); the seconds it took. `next_scan_due_s`
+        (`time.perf_counter` seconds; default: one scan period after the last
+        `register_frame` began): what map_normals 'in_time' fits its normals before.
 
         `register_frame` returns the pose first, so that a caller can publish it and then
         call this; the next `register_frame` does it when the caller did not. Either way
@@ -429,8 +439,22 @@ class OdometryPipeline:
                     self.frequency_source.observe(cropped, T_observed)
                 observe_s = time.perf_counter() - t1
             timings_s['filter'] = after_pose.seconds + observe_s
-        timings_s['map_update'] = self.registration.update_map()
-        return time.perf_counter() - t0
+        if next_scan_due_s is None and self._arrival is not None:
+            next_scan_due_s = self._arrival[0] + self.config.registration.scan_period_s
+        timings_s['map_update'] = self.registration.update_map(next_scan_due_s)
+        self._work_ended_s = time.perf_counter()
+        return self._work_ended_s - t0
+
+    def _note_arrival(self, started_s: float, stamp_ns: int) -> None:
+        """When this scan arrived: when its work began, or earlier if it waited behind
+        the work before it (its stamp's step from the scan before, after that one's
+        arrival; a scan that began after the work before it had been idle a while did not
+        wait). Scans come every scan period, so the next is due one period later."""
+        arrived_s = started_s
+        waited = started_s - self._work_ended_s <= IDLE_BEFORE_A_SCAN_S
+        if waited and self._arrival is not None and stamp_ns >= self._arrival[1]:
+            arrived_s = min(started_s, self._arrival[0] + (stamp_ns - self._arrival[1]) * 1e-9)
+        self._arrival = (arrived_s, stamp_ns)
 
     def map_snapshot(self, latest: FrameResult | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:

@@ -142,3 +142,27 @@ def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplo
         assert a.status == b.status
         np.testing.assert_allclose(a.T_world_sensor, b.T_world_sensor, atol=1e-9)
     assert all(np.isfinite(r.nu).any() for r in results[2:])
+
+
+def test_a_scan_that_waited_behind_the_work_before_it_arrived_earlier():
+    """The arrival the map's normals budget from ('in_time'): a scan that began right after
+    the work before it ended waited, and came one stamp step after the scan before; one
+    that began after an idle spell came when it began."""
+    pipeline = OdometryPipeline(GftOdomConfig())
+    period_ns = 100_000_000
+    pipeline._note_arrival(10.0, 0)
+    assert pipeline._arrival == (10.0, 0)
+    pipeline._work_ended_s = 10.15  # the scan's work overran the period
+    pipeline._note_arrival(10.151, period_ns)
+    assert pipeline._arrival[0] == pytest.approx(10.1)
+    pipeline._work_ended_s = 10.16  # caught up: the next scan came on time
+    pipeline._note_arrival(10.2, 2 * period_ns)
+    assert pipeline._arrival[0] == pytest.approx(10.2)
+    # A replay at half speed: the stamps step by a period, the scans begin two apart.
+    pipeline._work_ended_s = 10.25
+    pipeline._note_arrival(10.4, 3 * period_ns)
+    assert pipeline._arrival[0] == pytest.approx(10.4)
+    # A stamp going back starts the count again.
+    pipeline._work_ended_s = 10.5
+    pipeline._note_arrival(10.5, period_ns)
+    assert pipeline._arrival == (10.5, period_ns)

@@ -21,6 +21,7 @@ reports its covariance in.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,6 +132,26 @@ class MapTarget:
             missing = np.flatnonzero(~self._known)
             if missing.shape[0]:
                 self._estimate_normals(missing)
+
+    def estimate_normals_until(self, due_s: float, near_xyz: np.ndarray,
+                               chunk: int = 2000) -> None:
+        """Estimate normals not known yet, nearest `near_xyz` first (where the next scans'
+        pairs are), in chunks while the next would still end before `due_s`
+        (`time.perf_counter` seconds): time a caller has spare, spent before a pair asks."""
+        if self.normals is not None or not self._k:
+            return
+        missing = np.flatnonzero(~self._known)
+        if not missing.shape[0] or time.perf_counter() >= due_s:
+            return
+        offset = self.points[missing] - near_xyz
+        missing = missing[np.argsort(np.einsum('ij,ij->i', offset, offset), kind='stable')]
+        chunk_s = 0.0
+        for start in range(0, missing.shape[0], chunk):
+            t0 = time.perf_counter()
+            if t0 + chunk_s > due_s:
+                return
+            self._estimate_normals(missing[start:start + chunk])
+            chunk_s = time.perf_counter() - t0
 
     def _estimate_normals(self, rows: np.ndarray) -> None:
         """PCA normals: the least-variance axis of each point's nearest neighbours."""

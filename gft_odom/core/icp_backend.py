@@ -89,7 +89,10 @@ class IcpBackend:
                                        anneal_factor=config.kernel_anneal_factor)
         if self.solves_on_map_target:
             # 'on_demand': the map's target estimates the normals its pairs use.
-            local_map.with_normals = config.map_normals == 'rebuild'
+            # 'in_time': a rebuild's when they fit before the next scan, else on demand.
+            local_map.with_normals = config.map_normals in ('rebuild', 'in_time')
+            local_map.normals_in_time = config.map_normals == 'in_time'
+            local_map.normals_slack_s = config.map_normals_slack_s
             local_map.keep_normals = config.map_normals == 'kept'
         # This scan's downsampled points: their smoothness (residual_model 'frequency'), and
         # the same with unknown kept NaN (frequency_affinity_m, rough_kernel_scale_m; a

@@ -149,6 +149,29 @@ def _normals_releasing_the_interpreter(points_xyz: np.ndarray, neighbours: int
     return cloud.point.normals.numpy().astype(float, copy=False)
 
 
+class _CostPerPoint:
+    """The seconds a point costs, per kind of map work: a moving average of its runs."""
+
+    SMOOTHING = 0.3
+
+    def __init__(self) -> None:
+        self._seconds: dict[str, float] = {}
+
+    def observe(self, kind: str, seconds: float, n_points: int) -> None:
+        if n_points <= 0:
+            return
+        per_point = seconds / n_points
+        before = self._seconds.get(kind)
+        self._seconds[kind] = (per_point if before is None
+                               else before + self.SMOOTHING * (per_point - before))
+
+    def predict(self, kinds: tuple[str, ...], n_points: int) -> float | None:
+        """The seconds `kinds` together would take for `n_points`; None before each ran."""
+        if any(kind not in self._seconds for kind in kinds):
+            return None
+        return n_points * sum(self._seconds[kind] for kind in kinds)
+
+
 class _Served(NamedTuple):
     """What a rebuild serves: the cloud, per point the smoothness of the scan point it came
     from (None when unknown) and where the sensor stood, and (background) its target."""
@@ -214,6 +237,15 @@ class LocalMap:
         # served map, and keeps it while the point stays ('kept'); False estimates it when a
         # pair first asks, carried over only while its neighbourhood stays ('on_demand').
         self.keep_normals = False
+        # With `with_normals`: True estimates them at a rebuild only when they fit before
+        # the rebuild's `normals_due_s` (their measured cost per point), else leaves them to
+        # the pairs as without ('in_time').
+        self.normals_in_time = False
+        self.normals_slack_s = 0.0  # how late past `normals_due_s` they may still end
+        self._seconds_per_point = _CostPerPoint()
+        self.n_rebuilds_left_to_pairs = 0  # 'in_time' rebuilds whose normals did not fit
+        # Such a rebuild's deadline and centre: its target estimates what it can before.
+        self._normals_left: tuple[float, np.ndarray] | None = None
         self.with_covariances = with_covariances
         if eviction not in KEYFRAME_EVICTIONS:
             raise ValueError(f'eviction must be one of {KEYFRAME_EVICTIONS}, got {eviction!r}')
@@ -263,6 +295,7 @@ class LocalMap:
         self.viewpoints = np.zeros((0, 3))
         self._target = None
         self._previous_target = None
+        self._normals_left = None
 
     def target(self) -> MapTarget:
         """The map as the solvers' target (KD-tree built once per rebuild; without
@@ -273,18 +306,23 @@ class LocalMap:
                 covariances = (np.asarray(self.cloud.covariances)
                                if self.cloud.has_covariances() else np.zeros((len(self), 3, 3)))
                 smoothness = smoothness_from_covariances(covariances, self.smoothness_variation)
+            t0 = time.perf_counter()
             self._target = MapTarget(np.asarray(self.cloud.points),
                                      np.asarray(self.cloud.normals)
                                      if self.cloud.has_normals() else None, smoothness,
                                      point_smoothness=self.smoothness,
                                      viewpoints=self.viewpoints,
                                      normal_neighbours=self.normal_neighbours)
+            self._seconds_per_point.observe('tree', time.perf_counter() - t0, len(self))
             previous, self._previous_target = self._previous_target, None
             if previous is not None:
                 self._target.inherit_normals(previous, self._index_of(previous.points),
                                              kept=self.keep_normals)
             if self.keep_normals:
                 self._target.estimate_missing_normals()
+            elif self._normals_left is not None:
+                self._target.estimate_normals_until(*self._normals_left)
+            self._normals_left = None
         return self._target
 
     def _index_of(self, points_xyz: np.ndarray) -> np.ndarray:
@@ -327,9 +365,12 @@ class LocalMap:
         return time.perf_counter() - t0
 
     def add_keyframe(self, points_world: np.ndarray, T_world_sensor: np.ndarray,
-                     smoothness: np.ndarray | None = None, background: bool = False) -> None:
+                     smoothness: np.ndarray | None = None, background: bool = False,
+                     normals_due_s: float | None = None) -> None:
         """Store a keyframe (world-frame points, optional per-point smoothness in [0, 1])
-        and rebuild the served cloud; `background`: on a thread, served after `adopt`."""
+        and rebuild the served cloud; `background`: on a thread, served after `adopt`;
+        `normals_due_s` (`time.perf_counter` seconds; None: no deadline): with
+        `normals_in_time`, when the next scan is due."""
         self.adopt()  # the window changes only once the rebuild before is served
         keep = voxel_downsample_indices(points_world, self.voxel_size_m,
                                         self._view_priority(points_world, T_world_sensor))
@@ -348,7 +389,10 @@ class LocalMap:
         if background:
             self._worker.submit(lambda: self._rebuilt(centre, in_background=True))
         else:
-            self._serve(self._rebuilt(centre))
+            self._normals_left = None
+            self._serve(self._rebuilt(centre, normals_due_s=normals_due_s))
+            if self.normals_in_time and not self.cloud.has_normals() and len(self):
+                self._normals_left = (normals_due_s, centre)
 
     @property
     def n_anchors(self) -> int:
@@ -435,7 +479,8 @@ class LocalMap:
             centroids[one], views[one] = points[first[one]], viewpoints[first[one]]
         return centroids, views, smooth
 
-    def _rebuilt(self, centre_xyz: np.ndarray, in_background: bool = False) -> _Served:
+    def _rebuilt(self, centre_xyz: np.ndarray, in_background: bool = False,
+                 normals_due_s: float | None = None) -> _Served:
         """The map of the window and the anchors around `centre_xyz`. `in_background`: its
         target too, with every normal, computed so that the thread leaves the interpreter to
         the next scan's match."""
@@ -482,8 +527,12 @@ class LocalMap:
                          viewpoints[index])
         if merged.shape[0] >= 3:
             search = o3d.geometry.KDTreeSearchParamKNN(self.normal_neighbours)
-            if self.with_normals and not in_background:
+            if (self.with_normals and not in_background
+                    and self._normals_in_time(merged.shape[0], normals_due_s)):
+                t0 = time.perf_counter()
                 served.cloud.estimate_normals(search)
+                self._seconds_per_point.observe('normals', time.perf_counter() - t0,
+                                                merged.shape[0])
             if self.with_covariances:
                 served.cloud.estimate_covariances(search)
         if in_background:
@@ -492,6 +541,20 @@ class LocalMap:
                 point_smoothness=served.smoothness, viewpoints=served.viewpoints,
                 normal_neighbours=self.normal_neighbours))
         return served
+
+    def _normals_in_time(self, n_points: int, due_s: float | None) -> bool:
+        """Whether a rebuild of `n_points` estimates every normal: always, unless
+        `normals_in_time` and its normals and KD-tree, at their cost per point so far, would
+        end after `due_s` + `normals_slack_s` (a first rebuild, with no cost measured yet,
+        estimates them). A map left to the pairs estimates the nearest of them that fit
+        before `due_s` (`target`)."""
+        if not self.normals_in_time or due_s is None:
+            return True
+        needed_s = self._seconds_per_point.predict(('normals', 'tree'), n_points)
+        if needed_s is None or time.perf_counter() + needed_s <= due_s + self.normals_slack_s:
+            return True
+        self.n_rebuilds_left_to_pairs += 1
+        return False
 
     def _serve(self, served: _Served) -> None:
         self.cloud, self.smoothness, self.viewpoints = served[:3]

@@ -255,9 +255,11 @@ class ScanRegistration:
         """A deferred `register` left a keyframe for `update_map`."""
         return self._pending_keyframe is not None
 
-    def update_map(self) -> float:
+    def update_map(self, next_scan_due_s: float | None = None) -> float:
         """Add the keyframe the last `register` left pending, and build the solvers' target
         (its KD-tree) for the next match; the seconds it took (0 when nothing was pending).
+        `next_scan_due_s` (`time.perf_counter` seconds): when the next scan is due
+        (map_normals 'in_time'; None: no deadline).
 
         The next `register` does it first when the caller did not, so deferring changes no
         pose: it only lets a caller publish the pose before the map work (a keyframe's
@@ -271,7 +273,7 @@ class ScanRegistration:
         background = self._background_map and len(self.local_map) > 0
         self.local_map.add_keyframe(points_world, T_world_sensor,
                                     _smoothness_or_unknown(smoothness, points_world.shape[0]),
-                                    background=background)
+                                    background=background, normals_due_s=next_scan_due_s)
         if background:
             self._adopt_at_scan = self.n_registered + 1  # served from the scan after next
         elif self.icp.solves_on_map_target and len(self.local_map):
@@ -293,7 +295,7 @@ class ScanRegistration:
             raise RegistrationError(f'advance_with_prediction needs a fallback status from '
                                     f'{STATUSES}, got {status!r}')
         t_start = time.perf_counter()
-        self.update_map()
+        self.update_map(next_scan_due_s=t_start)
         timings: dict[str, float] = {}
         self._serve_map(timings)
         _, T_pred = self.motion.predict(stamp_ns)
@@ -313,7 +315,8 @@ class ScanRegistration:
         returned before the map's rebuild."""
         sweep = _Sweep(*self._check_input(points_xyz, time_offset_s, nu))
         timings: dict[str, float] = {}
-        self.update_map()  # a keyframe a deferred call left, when its caller did not
+        # A keyframe a deferred call left, when its caller did not: this scan is waiting.
+        self.update_map(next_scan_due_s=time.perf_counter())
         t_start = time.perf_counter()
         self._serve_map(timings)
         # 1. Predict: the velocity over the real stamp difference, capped (a gap drops it).

@@ -22,7 +22,7 @@ MAP_POINTS_FROM = ('registration', 'scan')
 ESTIMATIONS = ('auto', 'point_to_plane', 'point_to_point', 'gicp')
 ROBUST_KERNELS = ('none', 'tukey', 'huber', 'cauchy')
 SOLVERS = ('open3d', 'gauss_newton', 'map_tree')
-MAP_NORMALS = ('rebuild', 'on_demand', 'kept')
+MAP_NORMALS = ('rebuild', 'on_demand', 'kept', 'in_time')
 MAP_UPDATES = ('auto', 'inline', 'background')
 VOXEL_PRIORITIES = ('first', 'smoothest')
 
@@ -297,8 +297,15 @@ class RegistrationConfig:
     # normals, so the same trajectory; the work moves into the matches, before the pose,
     # docs/registration.md sessions 12-13) or 'kept' (a point's once, when it enters the map,
     # kept while it stays: only the new points' at a keyframe, not what a fresh estimate
-    # would give where new neighbours came; session 15).
+    # would give where new neighbours came; session 15) or 'in_time' ('rebuild' when the
+    # rebuild's normals and KD-tree, at their measured cost per point, fit before the next
+    # scan is due (the scan's start + scan_period_s), else 'on_demand' for that map: the
+    # same normals either way, so the same trajectory; session 34).
     map_normals: str = 'rebuild'
+    # 'in_time': how long after the next scan is due a rebuild's normals and KD-tree may
+    # still end. Normals left to the pairs cost their matches 2-4x more per point, so a next
+    # scan held up briefly (its latency still well under the period) is the cheaper way.
+    map_normals_slack_s: float = 0.03
     # When a keyframe's map rebuild is done: 'inline' (before the next scan is matched) or
     # 'background' (on a thread, while the next scan is matched against the map before it;
     # the scan after that adopts it). A keyframe's rebuild (~150 ms at the p95) then no
@@ -458,6 +465,9 @@ class RegistrationConfig:
                 and self.recovery_correspondence_factor >= 1.0):
             raise ConfigError(f'recovery_correspondence_factor must be >= 1, got '
                               f'{self.recovery_correspondence_factor}')
+        if not (math.isfinite(self.map_normals_slack_s) and self.map_normals_slack_s >= 0.0):
+            raise ConfigError(f'map_normals_slack_s must be a finite number >= 0, got '
+                              f'{self.map_normals_slack_s}')
         if self.max_gap_s < self.scan_period_s:
             raise ConfigError(f'max_gap_s ({self.max_gap_s}) must be >= scan_period_s '
                               f'({self.scan_period_s})')

@@ -283,6 +283,102 @@ def test_on_demand_normals_give_the_rebuilds_trajectory(solver):
     np.testing.assert_allclose(poses['on_demand'], poses['rebuild'], atol=1e-9)
 
 
+def test_in_time_normals_are_estimated_at_a_rebuild_only_when_they_fit():
+    import time
+
+    from gft_odom.core.local_map import LocalMap
+    scene = box_scene(seed=8)
+    local_map = LocalMap(0.1, 100.0, 100_000, 3, 1.0, 0.2, 15)
+    local_map.normals_in_time = True
+    past = time.perf_counter() - 1.0
+    # The first rebuild has no cost measured yet: it estimates them, however late.
+    local_map.add_keyframe(scene[:3000], np.eye(4), normals_due_s=past)
+    assert local_map.cloud.has_normals() and local_map.target().normals is not None
+    T = np.eye(4)
+    T[0, 3] = 1.5
+    local_map.add_keyframe(scene[3000:6000], T, normals_due_s=time.perf_counter() - 1.0)
+    late = local_map.target()
+    assert not local_map.cloud.has_normals() and late.normals is None
+    assert local_map.n_rebuilds_left_to_pairs == 1
+    assert late.n_normals_estimated == 0  # no time was left to estimate any ahead
+    every = np.arange(len(local_map))
+    fresh = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(late.points))
+    fresh.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(15))
+    dot = np.einsum('ij,ij->i', late.normals_at(every), np.asarray(fresh.normals))
+    np.testing.assert_allclose(np.abs(dot), 1.0, atol=1e-9)  # what a rebuild would give
+    T[0, 3] = 3.0
+    local_map.add_keyframe(scene[6000:], T, normals_due_s=time.perf_counter() + 60.0)
+    assert local_map.cloud.has_normals() and local_map.n_rebuilds_left_to_pairs == 1
+    # Late, but within the slack: still every normal at the rebuild.
+    local_map.normals_slack_s = 120.0
+    local_map.add_keyframe(scene[:3000], T, normals_due_s=time.perf_counter() - 1.0)
+    assert local_map.cloud.has_normals() and local_map.n_rebuilds_left_to_pairs == 1
+    local_map.normals_slack_s = 0.0
+    # Without a deadline, or without 'in_time', a rebuild always estimates them.
+    local_map.add_keyframe(scene[:3000], np.eye(4), normals_due_s=None)
+    local_map.normals_in_time = False
+    local_map.add_keyframe(scene[3000:6000], T, normals_due_s=time.perf_counter() - 1.0)
+    assert local_map.cloud.has_normals() and local_map.n_rebuilds_left_to_pairs == 1
+
+
+@pytest.mark.parametrize('solver', ['map_tree', 'gauss_newton'])
+def test_in_time_normals_give_the_rebuilds_trajectory(solver):
+    import time
+    points = box_scene(seed=9)
+    poses = {}
+    for normals in ('rebuild', 'in_time'):
+        registration = ScanRegistration(RegistrationConfig(
+            solver=solver, map_normals=normals, keyframe_distance_m=0.1))
+        moved = []
+        for i in range(8):
+            T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
+                               [0.12 * i, 0.02 * i, 0.0])
+            moved.append(registration.register(
+                (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
+                i * 100_000_000, defer_map_update=True).T_world_sensor)
+            # Every other keyframe late: its map leaves the normals to the pairs.
+            registration.update_map(time.perf_counter() + (-1.0 if i % 2 else 60.0))
+        poses[normals] = np.array(moved)
+        left = registration.local_map.n_rebuilds_left_to_pairs
+        assert left == (0 if normals == 'rebuild' else 4)  # scans 1, 3, 5 and 7
+    np.testing.assert_allclose(poses['in_time'], poses['rebuild'], atol=1e-9)
+
+
+def test_spare_time_estimates_the_nearest_normals_first(monkeypatch):
+    from types import SimpleNamespace
+
+    from gft_odom.core import gauss_newton
+    points = box_scene(seed=8)
+    clock = iter(np.arange(0.0, 1000.0))  # each reading a second later: a chunk takes 1 s
+    monkeypatch.setattr(gauss_newton, 'time', SimpleNamespace(perf_counter=lambda: next(clock)))
+    near = points[0]
+    target = MapTarget(points, None)
+    # Readings: 0 (start), then 1 and 2 around the first chunk (1 s), then 3 and 4 around
+    # the second: the third would end after 5.5 s, so two chunks are estimated.
+    target.estimate_normals_until(5.5, near, chunk=100)
+    assert target.n_normals_estimated == 200
+    distance = np.linalg.norm(points - near, axis=1)
+    assert distance[target._known].max() <= distance[~target._known].min()
+    every = np.arange(points.shape[0])
+    fresh = MapTarget(points, None)
+    known = target._known.copy()
+    dot = np.einsum('ij,ij->i', target.normals_at(every)[known], fresh.normals_at(every)[known])
+    np.testing.assert_allclose(np.abs(dot), 1.0, atol=1e-12)
+    past = MapTarget(points, None)
+    past.estimate_normals_until(-1.0, near)
+    assert past.n_normals_estimated == 0
+
+
+def test_in_time_normals_need_a_numpy_solver_and_an_inline_map_update():
+    with pytest.raises(ConfigError, match='in_time'):
+        RegistrationConfig(solver='open3d', map_normals='in_time').validate()
+    with pytest.raises(ConfigError, match='background'):
+        RegistrationConfig(map_normals='in_time', map_update='background').validate()
+    RegistrationConfig(map_normals='in_time', map_update='auto').validate()
+    with pytest.raises(ConfigError, match='map_normals_slack_s'):
+        RegistrationConfig(map_normals='in_time', map_normals_slack_s=-0.01).validate()
+
+
 def test_on_demand_normals_need_a_numpy_solver():
     with pytest.raises(ConfigError, match='on_demand'):
         RegistrationConfig(solver='open3d', map_normals='on_demand').validate()
