@@ -272,15 +272,23 @@ def test_on_demand_normals_give_the_rebuilds_trajectory(solver):
     for normals in ('rebuild', 'on_demand'):
         registration = ScanRegistration(RegistrationConfig(
             solver=solver, map_normals=normals, keyframe_distance_m=0.1))
-        moved = []
-        for i in range(6):
-            T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
-                               [0.12 * i, 0.02 * i, 0.0])
-            moved.append(registration.register(
-                (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
-                i * 100_000_000).T_world_sensor)
-        poses[normals] = np.array(moved)
+        poses[normals] = _turn_and_drive(registration, points, 6)
     np.testing.assert_allclose(poses['on_demand'], poses['rebuild'], atol=1e-9)
+
+
+def _turn_and_drive(registration, points, n_scans, after_each=None):
+    """The poses of `points` seen along a short turn-and-drive; `after_each(i)`: after
+    scan i's pose (its map update deferred to then)."""
+    moved = []
+    for i in range(n_scans):
+        T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
+                           [0.12 * i, 0.02 * i, 0.0])
+        moved.append(registration.register(
+            (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
+            i * 100_000_000, defer_map_update=after_each is not None).T_world_sensor)
+        if after_each is not None:
+            after_each(i)
+    return np.array(moved)
 
 
 def test_in_time_normals_are_estimated_at_a_rebuild_only_when_they_fit():
@@ -329,16 +337,9 @@ def test_in_time_normals_give_the_rebuilds_trajectory(solver):
     for normals in ('rebuild', 'in_time'):
         registration = ScanRegistration(RegistrationConfig(
             solver=solver, map_normals=normals, keyframe_distance_m=0.1))
-        moved = []
-        for i in range(8):
-            T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
-                               [0.12 * i, 0.02 * i, 0.0])
-            moved.append(registration.register(
-                (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
-                i * 100_000_000, defer_map_update=True).T_world_sensor)
-            # Every other keyframe late: its map leaves the normals to the pairs.
-            registration.update_map(time.perf_counter() + (-1.0 if i % 2 else 60.0))
-        poses[normals] = np.array(moved)
+        # Every other keyframe late: its map leaves the normals to the pairs.
+        poses[normals] = _turn_and_drive(registration, points, 8, lambda i: (
+            registration.update_map(time.perf_counter() + (-1.0 if i % 2 else 60.0))))
         left = registration.local_map.n_rebuilds_left_to_pairs
         assert left == (0 if normals == 'rebuild' else 4)  # scans 1, 3, 5 and 7
     np.testing.assert_allclose(poses['in_time'], poses['rebuild'], atol=1e-9)
