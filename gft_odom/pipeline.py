@@ -417,8 +417,8 @@ class OdometryPipeline:
         """The work the last `register_frame` left after its pose: its frequencies (when
         they come after the pose, and nobody read them yet) and a keyframe's map rebuild
         (its normals and KD-tree); the seconds it took. `next_scan_due_s`
-        (`time.perf_counter` seconds; default: one scan period after the last
-        `register_frame` began): what map_normals 'in_time' fits its normals before.
+        (`time.perf_counter` seconds; default: one scan period after the last scan arrived,
+        `_note_arrival`): what map_normals 'in_time' fits its normals before.
 
         `register_frame` returns the pose first, so that a caller can publish it and then
         call this; the next `register_frame` does it when the caller did not. Either way
