@@ -388,18 +388,11 @@ def test_on_demand_normals_need_a_numpy_solver():
 
 
 def _drive_box(config: RegistrationConfig, n_scans: int = 8) -> np.ndarray:
-    """The poses of a short turn-and-drive through the box scene."""
-    points = box_scene(seed=9)
+    """The poses of a short turn-and-drive through the box scene, each scan's map update
+    after its pose."""
     registration = ScanRegistration(config)
-    poses = []
-    for i in range(n_scans):
-        T = make_transform(Rotation.from_euler('z', 1.5 * i, degrees=True).as_matrix(),
-                           [0.12 * i, 0.02 * i, 0.0])
-        poses.append(registration.register(
-            (invert_transform(T)[:3, :3] @ points.T).T + invert_transform(T)[:3, 3],
-            i * 100_000_000, defer_map_update=True).T_world_sensor)
-        registration.update_map()
-    return np.array(poses)
+    return _turn_and_drive(registration, box_scene(seed=9), n_scans,
+                           lambda i: registration.update_map())
 
 
 def test_background_rebuild_normals_are_the_inline_ones():
