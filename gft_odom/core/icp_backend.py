@@ -19,6 +19,7 @@ import open3d as o3d
 
 from gft_odom.core.deferred import Deferred, resolved
 from gft_odom.core.gauss_newton import GaussNewtonICP
+from gft_odom.core.geometry import transform_points
 from gft_odom.core.local_map import LocalMap
 from gft_odom.core.map_tree_icp import MapTreeICP
 from gft_odom.core.residuals import make_residual_model
@@ -152,7 +153,27 @@ class IcpBackend:
         (`recovery`: the longer iteration budget of re-acquisition; `max_iterations`: another
         budget; `prior`: `init` is the motion model's prediction, a soft prior with
         motion_prior_weight). Returns open3d's result or the solver's IcpResult
-        (transformation, fitness, inlier_rmse)."""
+        (transformation, fitness, inlier_rmse); against the local map with `noise_gate_m`,
+        its inlier RMSE is `noise_rmse_m`'s."""
+        result = self._solve(source, target, init, distance_m, recovery, prior, max_iterations)
+        if self.config.noise_gate_m > 0.0 and target is self.local_map.cloud:
+            result.inlier_rmse = self.noise_rmse_m(np.asarray(source.points),
+                                                   np.asarray(result.transformation))
+        return result
+
+    def noise_rmse_m(self, source_xyz: np.ndarray, T_world_sensor: np.ndarray) -> float:
+        """RMS distance to the map of the points within `noise_gate_m` of it at that pose. It
+        scales the match's information: within a narrow correspondence gate the distances
+        are cut short and the covariance would claim more than the match knows."""
+        distance_m = self.local_map.distances_within(
+            transform_points(T_world_sensor, source_xyz), self.config.noise_gate_m)
+        near = distance_m[np.isfinite(distance_m)]
+        return float(np.sqrt(np.mean(near ** 2))) if near.size else 0.0
+
+    def _solve(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
+               init: np.ndarray, distance_m: float, recovery: bool, prior: bool,
+               max_iterations: int | None):
+        """`register`'s ICP, as its solver reports it."""
         criteria = self.recovery_criteria if recovery else self.criteria
         if max_iterations is not None:
             criteria = o3d_reg.ICPConvergenceCriteria(

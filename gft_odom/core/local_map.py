@@ -325,6 +325,18 @@ class LocalMap:
             self._normals_left = None
         return self._target
 
+    def distances_within(self, points_world: np.ndarray, distance_m: float) -> np.ndarray:
+        """Each point's distance to the nearest map point, inf beyond `distance_m`."""
+        if not points_world.shape[0] or not len(self):
+            return np.full(points_world.shape[0], np.inf)
+        distance, _ = self.target().tree.query(points_world, distance_upper_bound=distance_m)
+        return distance
+
+    def share_near(self, points_world: np.ndarray, distance_m: float) -> float:
+        """The share of `points_world` with a map point within `distance_m` (0 for none)."""
+        distance = self.distances_within(points_world, distance_m)
+        return float(np.mean(np.isfinite(distance))) if distance.size else 0.0
+
     def _index_of(self, points_xyz: np.ndarray) -> np.ndarray:
         """Each point's index in the served map, -1 where it is not there (one point per
         voxel: found by its voxel key, then checked to be the same point)."""

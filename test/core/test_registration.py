@@ -165,6 +165,11 @@ def registration(**overrides) -> ScanRegistration:
     return ScanRegistration.from_config(dataclasses.replace(RegistrationConfig(), **overrides))
 
 
+# The turn-check tests script ICP's fitness (0.80 from the prediction, 0.90 elsewhere)
+# against the recent matches' real fitness within a 1 m correspondence gate.
+TURN_CHECK_SCENE = dict(max_correspondence_distance_m=1.0, min_relative_fitness=0.7)
+
+
 # ---------------------------------------------------------------- fixtures
 
 @pytest.fixture(scope='module')
@@ -207,6 +212,7 @@ def test_default_config_is_valid_and_from_config_builds():
     ('robust_kernel', 'l1', 'robust_kernel'),
     ('voxel_size_m', 0.0, 'voxel_size_m'),
     ('max_correspondence_distance_m', float('nan'), 'max_correspondence_distance_m'),
+    ('noise_gate_m', -0.5, 'noise_gate_m'),
     ('max_iterations', 0, 'max_iterations'),
     ('min_fitness', 1.5, 'min_fitness'),
     ('fallback_std_m', 0.001, 'fallback_std'),
@@ -397,18 +403,23 @@ def headland_turn(x0_m: float, speed_mps: float = 1.8, t_turn_s: float = 1.0,
     return pose_at
 
 
-@pytest.mark.parametrize('yaw_guesses, deskew, tracked',
-                         [(2, False, True), (0, False, False), (0, True, True), (2, True, True)])
+@pytest.mark.parametrize('yaw_guesses, deskew, gate_m, tracked', [
+    (2, False, 1.0, True), (0, False, 1.0, False), (0, True, 1.0, True), (2, True, 1.0, True),
+    (0, True, 0.4, False), (2, True, 0.4, True)])
 def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(orchard, yaw_guesses,
-                                                                  deskew, tracked):
+                                                                  deskew, gate_m, tracked):
     """1.8 m/s, 14 m past the row ends, then 2 rad/s within 0.1 s: from a prediction without
     the turn, ICP fits the ground at any yaw and slides; the row ends that fix the yaw lie
     outside its gate. Re-acquisition's turned guesses find the turn; without them, and
     without deskew, the heading is lost (1.6 rad after 1 s here). Deskewed (azimuth times),
-    this turn is tracked even without them."""
+    this turn is tracked even without them within a 1 m correspondence gate, not within
+    0.4 m (a smaller basin: the turned guesses are needed)."""
     scans = [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
              for k in range(20)]
-    reg = registration(recovery_yaw_guesses=yaw_guesses, deskew=deskew)
+    # Each gate with the relative fitness it is trusted by (session 36).
+    reg = registration(recovery_yaw_guesses=yaw_guesses, deskew=deskew,
+                       max_correspondence_distance_m=gate_m,
+                       min_relative_fitness={1.0: 0.7, 0.4: 0.5}[gate_m])
     T_world0 = invert_transform(scans[0]['T_world_sensor'])
     yaw_errors = []
     for scan in scans:
@@ -419,6 +430,45 @@ def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(orchard, yaw_g
         assert max(yaw_errors) < 0.1, np.round(yaw_errors, 3)
     else:
         assert yaw_errors[-1] > 0.5, np.round(yaw_errors, 3)
+
+
+@pytest.mark.parametrize('min_relative_fitness, tracked', [(0.7, False), (0.5, True)])
+def test_within_a_narrow_gate_the_open_ground_turn_needs_a_lower_relative_fitness(
+        orchard, min_relative_fitness, tracked):
+    """ICP pairing within 0.4 m: while turning into unseen ground even the true pose has
+    few points that close to the map (~0.57 x the recent matches' fitness), so at 0.7 x the
+    trust policy refuses the turn and the heading is lost."""
+    scans = [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
+             for k in range(20)]
+    reg = registration(max_correspondence_distance_m=0.4,
+                       min_relative_fitness=min_relative_fitness)
+    T_world0 = invert_transform(scans[0]['T_world_sensor'])
+    yaw_errors = [pose_error(reg.register(scan['points'], scan['stamp_ns']).T_world_sensor,
+                             T_world0 @ scan['T_world_sensor'])[1] for scan in scans]
+    if tracked:
+        assert max(yaw_errors) < 0.1, np.round(yaw_errors, 3)
+    else:
+        assert yaw_errors[-1] > 0.3, np.round(yaw_errors, 3)
+
+
+def test_the_noise_gate_measures_a_matchs_rmse_without_moving_it(static_pair):
+    """At the correspondence gate it is ICP's own RMSE (of the points with a map point that
+    close); wider, further points count too and the covariance grows; the pose and the
+    fitness are ICP's either way."""
+    a, b, _ = static_pair
+    results = {}
+    for noise_gate_m in (0.0, 0.4, 1.0):
+        reg = registration(max_correspondence_distance_m=0.4, noise_gate_m=noise_gate_m)
+        reg.register(a['points'], a['stamp_ns'])
+        results[noise_gate_m] = reg.register(b['points'], b['stamp_ns'])
+    assert results[0.4].inlier_rmse_m == pytest.approx(results[0.0].inlier_rmse_m, rel=1e-2)
+    assert results[1.0].inlier_rmse_m > 1.05 * results[0.0].inlier_rmse_m
+    assert results[1.0].covariance[0, 0] > results[0.0].covariance[0, 0]
+    for result in results.values():
+        assert result.status == 'ok'
+        assert result.fitness == results[0.0].fitness
+        np.testing.assert_allclose(result.T_world_sensor, results[0.0].T_world_sensor,
+                                   atol=1e-9)
 
 
 def test_empty_and_non_finite_points_do_not_raise(drive):
@@ -1066,7 +1116,8 @@ def test_a_poor_trusted_fit_is_replaced_by_a_turned_fit_that_fits_clearly_better
     turned guesses; a turned fit replaces it only when it fits better by the margin. The
     ICP here reports fitness 0.80 from the prediction and 0.90 from anywhere else."""
     reg = _moving_registration(drive, n_scans=8, turn_check=turn_check,
-                               turn_check_fitness_margin=margin, turn_check_gate_m=0.0)
+                               turn_check_fitness_margin=margin, turn_check_gate_m=0.0,
+                               **TURN_CHECK_SCENE)
     real_register, inits = reg.icp.register, []
 
     def scripted(source, target, init, distance_m, **kwargs):
@@ -1096,7 +1147,7 @@ def test_with_a_gate_the_turn_check_compares_fits_by_their_points_near_the_map(
     heading; within the gate the true pose stands out. Here ICP reports 0.80 for the match
     from the prediction (the true pose: the drive is straight) and 0.90 for each turned guess
     left where it started (0.1 rad off): by fitness a turn wins, by the gate the match."""
-    reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=gate_m)
+    reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=gate_m, **TURN_CHECK_SCENE)
     real_register, inits = reg.icp.register, []
 
     def scripted(source, target, init, distance_m, **kwargs):
@@ -1128,7 +1179,7 @@ def test_the_turn_check_carries_on_only_the_better_screened_guesses(
     prediction, `screened_fitness` for the guesses after the screen and 0.90 once carried on
     (0: no screen, every guess to the full budget at 0.85)."""
     reg = _moving_registration(drive, n_scans=8, turn_check_gate_m=0.0,
-                               turn_check_screen_iterations=screen)
+                               turn_check_screen_iterations=screen, **TURN_CHECK_SCENE)
     real_register, calls = reg.icp.register, []
 
     def scripted(source, target, init, distance_m, **kwargs):
@@ -1227,7 +1278,7 @@ def test_turned_guesses_are_matched_with_the_scan_deskewed_by_their_own_turn(
     pose_at = onset_of_turn(onset_s=n_straight * SCAN_PERIOD_S)
     scans = [scan_scene(orchard, pose_at, k * SCAN_PERIOD_S, seed=k)
              for k in range(n_straight + 1)]
-    reg = registration(turn_guess_deskew=guess_deskew)
+    reg = registration(turn_guess_deskew=guess_deskew, **TURN_CHECK_SCENE)
     for scan in scans[:n_straight]:
         assert reg.register(scan['points'], scan['stamp_ns'], scan['time']).status in (
             'first', 'ok')

@@ -11,7 +11,7 @@ from gft_odom.core.motion_model import MotionModel
 from gft_odom.core.registration_config import RegistrationConfig
 from gft_odom.core.trust import RECENT_FITNESS_MIN, TrustPolicy
 
-CONFIG = RegistrationConfig()  # fitness 0.3 (0.7 x recent), 2 m/s x 1.5, jump 0.5 m / 0.25 rad
+CONFIG = RegistrationConfig()  # its fitness bounds, 2 m/s x 1.5, jump 0.5 m / 0.25 rad
 STEP_NS = 100_000_000
 
 
@@ -43,12 +43,15 @@ def test_refusal_names_the_check_a_pose_fails(T_est, fitness, T_pred, refusal):
 def test_a_fitness_far_below_the_recent_matches_is_refused_once_there_are_enough():
     policy = _policy_trusting_the_origin()
     T_est = make_transform(None, [0.1, 0.0, 0.0])
+    bound = CONFIG.min_relative_fitness * 0.95
+    low, fine = max(0.9 * bound, CONFIG.min_fitness), 1.05 * bound
+    assert CONFIG.min_fitness <= low < bound
     for _ in range(RECENT_FITNESS_MIN - 1):
         policy.trusted(0.95)
-        assert policy.refusal(T_est, 0.6, np.eye(4), STEP_NS) is None  # too few to judge
+        assert policy.refusal(T_est, low, np.eye(4), STEP_NS) is None  # too few to judge
     policy.trusted(0.95)
-    assert policy.refusal(T_est, 0.6, np.eye(4), STEP_NS) == 'fallback_low_fitness'
-    assert policy.refusal(T_est, 0.7, np.eye(4), STEP_NS) is None  # 0.7 x 0.95 = 0.665
+    assert policy.refusal(T_est, low, np.eye(4), STEP_NS) == 'fallback_low_fitness'
+    assert policy.refusal(T_est, fine, np.eye(4), STEP_NS) is None
 
 
 def test_the_fallback_run_ends_tracking_and_a_trusted_pose_ends_the_run():
