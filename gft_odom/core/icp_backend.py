@@ -146,6 +146,19 @@ class IcpBackend:
             return self.local_map.target()
         return target
 
+    def match_rmse_m(self, result, source_xyz: np.ndarray, target) -> float:
+        """The RMSE a match's covariance is scaled by: ICP's own, or (`noise_gate_m`, against
+        the local map) the RMS distance of the points within that gate at its pose. Within a
+        narrow correspondence gate the distances are cut short and the covariance would claim
+        more than the match knows. Only for the matches kept (a KD-tree query each)."""
+        gate_m = self.config.noise_gate_m
+        if not gate_m > 0.0 or target is not self.local_map.cloud:
+            return float(result.inlier_rmse)
+        distance_m = self.local_map.distances_within(
+            transform_points(np.asarray(result.transformation), source_xyz), gate_m)
+        near = distance_m[np.isfinite(distance_m)]
+        return float(np.sqrt(np.mean(near ** 2))) if near.size else 0.0
+
     def register(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
                  init: np.ndarray, distance_m: float, recovery: bool = False,
                  prior: bool = False, max_iterations: int | None = None):
@@ -153,27 +166,7 @@ class IcpBackend:
         (`recovery`: the longer iteration budget of re-acquisition; `max_iterations`: another
         budget; `prior`: `init` is the motion model's prediction, a soft prior with
         motion_prior_weight). Returns open3d's result or the solver's IcpResult
-        (transformation, fitness, inlier_rmse); against the local map with `noise_gate_m`,
-        its inlier RMSE is `noise_rmse_m`'s."""
-        result = self._solve(source, target, init, distance_m, recovery, prior, max_iterations)
-        if self.config.noise_gate_m > 0.0 and target is self.local_map.cloud:
-            result.inlier_rmse = self.noise_rmse_m(np.asarray(source.points),
-                                                   np.asarray(result.transformation))
-        return result
-
-    def noise_rmse_m(self, source_xyz: np.ndarray, T_world_sensor: np.ndarray) -> float:
-        """RMS distance to the map of the points within `noise_gate_m` of it at that pose. It
-        scales the match's information: within a narrow correspondence gate the distances
-        are cut short and the covariance would claim more than the match knows."""
-        distance_m = self.local_map.distances_within(
-            transform_points(T_world_sensor, source_xyz), self.config.noise_gate_m)
-        near = distance_m[np.isfinite(distance_m)]
-        return float(np.sqrt(np.mean(near ** 2))) if near.size else 0.0
-
-    def _solve(self, source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
-               init: np.ndarray, distance_m: float, recovery: bool, prior: bool,
-               max_iterations: int | None):
-        """`register`'s ICP, as its solver reports it."""
+        (transformation, fitness, inlier_rmse)."""
         criteria = self.recovery_criteria if recovery else self.criteria
         if max_iterations is not None:
             criteria = o3d_reg.ICPConvergenceCriteria(

@@ -50,12 +50,12 @@ class TurnedFit(NamedTuple):
 
 
 def fitted_match(status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
-                 matched_target: np.ndarray, velocity: np.ndarray | None = None) -> Match:
-    """A trusted Match of an ICP `result` (pose `T_est`): its fitness, RMSE and information
-    (`matched_target`: the target as the ICP backend matched it)."""
-    rmse = float(result.inlier_rmse)
+                 icp: IcpBackend, target, velocity: np.ndarray | None = None) -> Match:
+    """A trusted Match of an ICP `result` (pose `T_est`, by `icp` against `target`): its
+    fitness, RMSE (`IcpBackend.match_rmse_m`) and information."""
+    rmse = icp.match_rmse_m(result, source_xyz, target)
     return Match(status, T_est, float(result.fitness), rmse,
-                 icp_information(source_xyz, matched_target, result, rmse), velocity)
+                 icp_information(source_xyz, icp.matched(target), result, rmse), velocity)
 
 
 class Recovery:
@@ -79,7 +79,7 @@ class Recovery:
 
     def _fitted(self, status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
                 target, velocity: np.ndarray | None = None) -> Match:
-        return fitted_match(status, result, T_est, source_xyz, self.icp.matched(target),
+        return fitted_match(status, result, T_est, source_xyz, self.icp, target,
                             velocity)
 
     def _implied_or(self, velocity: np.ndarray | None, stamp_ns: int,

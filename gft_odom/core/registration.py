@@ -506,7 +506,7 @@ class ScanRegistration:
         if refusal is not None:
             return Match(refusal, T_pred, float(result.fitness), float(result.inlier_rmse),
                          None)
-        return fitted_match('ok', result, T_est, source_xyz, self.icp.matched(target))
+        return fitted_match('ok', result, T_est, source_xyz, self.icp, target)
 
     def _continued_if_turning(self, source, target, init: np.ndarray, result):
         """`turn_continue_min_rad`: a match the iteration cap stopped while it was still
