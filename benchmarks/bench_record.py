@@ -64,16 +64,12 @@ NO_ANY_SIDE = (('registration.map_anchor_rough_any_side_share', 0.0),)
 # Session 18 made motion compensation (deskew, velocity window 2) the default; every row
 # before had none (and the window of then, 5: no effect without deskew, but in the config).
 NO_DESKEW = (('registration.deskew', False), ('registration.deskew_velocity_window', 5))
-# Session 36 made a 0.4 m correspondence gate the default (with min_relative_fitness 0.5 and
-# a match's noise measured within 1 m); every row before paired within 1 m.
-ONE_METRE_GATE = (('registration.max_correspondence_distance_m', 1.0),
-                  ('registration.min_relative_fitness', 0.7), ('registration.noise_gate_m', 0.0))
 
 
 def before_deskew(entries: tuple[Entry, ...]) -> tuple[Entry, ...]:
     """Rows measured before deskew was the default, pinned to none (an entry's own deskew
     override, later in the list, still wins); the peers' rows as they are."""
-    return tuple(Entry(e.label, e.method, NO_DESKEW + ONE_METRE_GATE + tuple(e.overrides))
+    return tuple(Entry(e.label, e.method, NO_DESKEW + tuple(e.overrides))
                  if e.method in ('default+gft', 'default') else e for e in entries)
 
 
@@ -91,9 +87,7 @@ ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
 # through its Python API and through evalio.
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
-    Entry('gft_odom, 1 m gate (session 35 default)', 'default+gft', ONE_METRE_GATE),
-    Entry('gft_odom without deskew (session 17 default)', 'default+gft',
-          NO_DESKEW + ONE_METRE_GATE),
+    Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
 ) + before_deskew((
     Entry('gft_odom + deskew (velocity window 5)', 'default+gft',
           (('registration.deskew', True),)),

@@ -216,7 +216,7 @@ class Solvers:
     def register(self, solver: str, source: np.ndarray, local_map: LocalMap,
                  init: np.ndarray, smoothness: np.ndarray | None) -> tuple[np.ndarray, int]:
         """(T_world_sensor, iterations) of one registration."""
-        d = self.reg.correspondence_distance_m
+        d = self.reg.max_correspondence_distance_m
         if solver in self.gn:
             r = self.gn[solver].register(source, local_map.target(), init, d,
                                          smoothness if solver == 'gn_freq' else None)
@@ -318,7 +318,7 @@ def oracle_run(sim: ScanSimulator, first: int, last: int, test_every: int,
             if with_pulls:
                 for kind in ('distorted', 'deskewed'):
                     pull = class_pulls(ts.points[kind], ts.surface, maps[kind], ts.T_true,
-                                       along, reg.correspondence_distance_m,
+                                       along, reg.max_correspondence_distance_m,
                                        reg.robust_kernel_scale_m)
                     for name, value in pull.items():
                         pulls.setdefault(f'{kind}:{name}', []).append(value)

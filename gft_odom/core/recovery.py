@@ -164,7 +164,7 @@ class Recovery:
                     max_iterations: int | None) -> TurnedFit:
         """ICP of a turned guess's scan from `init` (None: the usual budget), scored."""
         result = self.icp.register(source, self.local_map.cloud, init,
-                                   self.config.correspondence_distance_m,
+                                   self.config.max_correspondence_distance_m,
                                    max_iterations=max_iterations)
         T_est = np.asarray(result.transformation)
         return TurnedFit(self._fit_score(source_xyz, T_est, float(result.fitness)), result,
@@ -206,7 +206,7 @@ class Recovery:
         the motion it implies."""
         cfg = self.config
         source, target = to_cloud(source_xyz), self.local_map.cloud
-        wide_m = cfg.correspondence_distance_m * cfg.recovery_correspondence_factor
+        wide_m = cfg.max_correspondence_distance_m * cfg.recovery_correspondence_factor
         best, best_score, status = None, -1.0, 'fallback_low_fitness'
         best_plain_fitness = 0.0  # of any fit from a plain guess, refused ones included
         best_plain_score = 0.0  # the same by the score fits are compared by
@@ -223,7 +223,7 @@ class Recovery:
             for velocity, init in guesses:
                 coarse = self.icp.register(source, target, init, wide_m)
                 result = self.icp.register(source, target, np.asarray(coarse.transformation),
-                                           cfg.correspondence_distance_m, recovery=True)
+                                           cfg.max_correspondence_distance_m, recovery=True)
                 T_est = np.asarray(result.transformation)
                 if not np.all(np.isfinite(T_est)) or result.fitness < cfg.min_fitness:
                     continue

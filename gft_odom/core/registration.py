@@ -496,7 +496,7 @@ class ScanRegistration:
         else:
             target = self.local_map.cloud
             init = T_pred
-        result = self.icp.register(source, target, init, cfg.correspondence_distance_m,
+        result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m,
                                    prior=self.mode == 'default')
         result = self._continued_if_turning(source, target, init, result)
         T_est = np.asarray(result.transformation)
@@ -520,7 +520,7 @@ class ScanRegistration:
         if not turned_rad > cfg.turn_continue_min_rad:
             return result
         self.n_turn_continued += 1
-        return self.icp.register(source, target, T, cfg.correspondence_distance_m,
+        return self.icp.register(source, target, T, cfg.max_correspondence_distance_m,
                                  max_iterations=cfg.turn_continue_iterations)
 
     def _deskewed_as(self, sweep: _Sweep, velocity: np.ndarray) -> np.ndarray:

@@ -34,11 +34,6 @@ CHOICES = {'mode': MODES, 'estimation': ESTIMATIONS, 'map_keyframe_eviction': KE
            'rough_residual': ROUGH_RESIDUALS, 'robust_kernel': ROBUST_KERNELS}
 
 
-# The correspondence gate each mode uses unless max_correspondence_distance_m sets one.
-PAPER_CORRESPONDENCE_M = 1.0
-DEFAULT_CORRESPONDENCE_M = 0.4
-
-
 @dataclass(frozen=True)
 class RegistrationConfig:
     """Parameters of ScanRegistration; defaults chosen by benchmarks/bench_registration.py."""
@@ -49,22 +44,20 @@ class RegistrationConfig:
     estimation: str = 'auto'
     # Source voxel: ~3k of the ~26k points of a VLP-16 orchard scan, plenty for 6 DoF.
     voxel_size_m: float = 0.4
-    # Largest point pair ICP accepts; it is also the trust policy's fitness (the share of
-    # points with a pair). 0: the mode's own (`correspondence_distance_m`): 1 m in paper mode
-    # (above the worst motion of a scan from identity at 2 m/s), 0.4 m in default mode, where
-    # the match starts from the prediction. Within 1 m the ground pairs with any heading, so at
-    # a turn's onset in open ground neither the match nor its fitness tells a missed turn;
-    # within 0.4 m both do. Session 35 swept it (0.4 m: -13 % on the training drives);
-    # session 36 made 0.4 m the default with min_relative_fitness 0.5: edge drives kept 20 of
-    # 20 (18 at 1 m), the record 0.0614 -> 0.0609 m (docs/registration.md).
-    max_correspondence_distance_m: float = 0.0
+    # Largest point pair ICP accepts: a few voxels, above the worst prediction error at 2 m/s.
+    # It is also the trust policy's fitness (the share of points with a pair). 0.4 m (with
+    # min_relative_fitness 0.5 and noise_gate_m 1.0) was 13 % better on the training drives
+    # and kept all twenty edge drives (18 at 1 m), but the record was level (0.0614 -> 0.0609
+    # m, six drives worse), the twist noisier, and the frequency lost to its shuffled control
+    # (sessions 35 and 36, docs/registration.md): not the default.
+    max_correspondence_distance_m: float = 1.0
     # The noise a match's covariance is scaled by (its inlier RMSE) is measured over the
     # scan's points within this distance of the map at its pose (0: ICP's own pairs, within
     # the correspondence gate). Within a narrow gate the distances are cut short and the
-    # covariance claims more than the match knows: on the simulated U-turn of the tests,
-    # 79 % of the forward-speed errors within 2 sigma at a 0.4 m gate, 95 % with this at 1 m
-    # (97 % with both at 1 m).
-    noise_gate_m: float = 1.0
+    # covariance claims more than the match knows: on the simulated U-turn of the tests at a
+    # 0.4 m gate, 79 % of the forward-speed errors within 2 sigma, 95 % with this at 1 m
+    # (97 % at a 1 m gate; session 36).
+    noise_gate_m: float = 0.0
     max_iterations: int = 30
     # A match stopped by max_iterations while still turning (its rotation from the prediction
     # above this) carries on for turn_continue_iterations more (0: off). At a turn's onset
@@ -184,10 +177,9 @@ class RegistrationConfig:
     # trusted either. Scan-to-map fitness is steady (0.8-0.97 on the simulated drives); a
     # copy of a scan rotated 90 deg still reached 0.48 near the prediction, enough for
     # min_fitness, and would have entered the map at a keyframe.
-    # 0.5, not 0.7 (session 36): within the 0.4 m gate even the true pose fits only ~0.57 x
-    # the recent matches while turning into unseen ground (the synthetic open-ground turn of
-    # the tests loses its heading at 0.7).
-    min_relative_fitness: float = 0.5
+    # Within a 0.4 m gate it wants 0.5: even the true pose fits only ~0.57 x the recent
+    # matches while turning into unseen ground (session 36).
+    min_relative_fitness: float = 0.7
     # Largest correction to the constant-velocity prediction per scan period: a Jackal
     # (2 m/s, ~2 rad/s top speed) cannot change its velocity by more within 0.1 s. Scaled
     # by the time the prediction covers: a scan 30 ms after the last may stray 0.3 x as far
@@ -443,8 +435,7 @@ class RegistrationConfig:
         for name in ('motion_prior_weight', 'frequency_affinity_m', 'rough_weight',
                      'motion_margin', 'rough_kernel_scale_m', 'turn_check_gate_m',
                      'turn_continue_min_rad', 'adaptive_kernel_ratio',
-                     'adaptive_min_motion_m', 'kernel_anneal_from_m', 'noise_gate_m',
-                     'max_correspondence_distance_m'):
+                     'adaptive_min_motion_m', 'kernel_anneal_from_m', 'noise_gate_m'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ConfigError(f'{name} must be a finite number >= 0, got {value}')
@@ -453,7 +444,7 @@ class RegistrationConfig:
         if not (math.isfinite(self.rough_beam_shift_m) and abs(self.rough_beam_shift_m) <= 1.0):
             raise ConfigError('rough_beam_shift_m must be a finite number in [-1, 1] m, got '
                               f'{self.rough_beam_shift_m}')
-        positive = ('voxel_size_m', 'robust_kernel_scale_m',
+        positive = ('voxel_size_m', 'max_correspondence_distance_m', 'robust_kernel_scale_m',
                     'gicp_epsilon', 'map_voxel_size_m', 'map_max_range_m',
                     'keyframe_distance_m', 'keyframe_rotation_rad', 'max_translation_jump_m',
                     'max_rotation_jump_rad', 'scan_period_s', 'convergence_relative',
@@ -544,13 +535,6 @@ class RegistrationConfig:
         if steps >= self.max_iterations:
             raise ConfigError(f'the graduated kernel takes {steps} iterations to reach '
                               f'robust_kernel_scale_m, max_iterations is {self.max_iterations}')
-
-    @property
-    def correspondence_distance_m(self) -> float:
-        """The correspondence gate, `max_correspondence_distance_m` or (0) the mode's own."""
-        if self.max_correspondence_distance_m > 0.0:
-            return self.max_correspondence_distance_m
-        return PAPER_CORRESPONDENCE_M if self.mode == 'paper' else DEFAULT_CORRESPONDENCE_M
 
     @property
     def resolved_estimation(self) -> str:

@@ -416,7 +416,7 @@ def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(orchard, yaw_g
     0.4 m (a smaller basin: the turned guesses are needed)."""
     scans = [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
              for k in range(20)]
-    # Each gate with the relative fitness it is trusted by (session 36).
+    # Each gate with the relative fitness that keeps this turn (session 36).
     reg = registration(recovery_yaw_guesses=yaw_guesses, deskew=deskew,
                        max_correspondence_distance_m=gate_m,
                        min_relative_fitness={1.0: 0.7, 0.4: 0.5}[gate_m])
