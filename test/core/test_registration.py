@@ -403,28 +403,35 @@ def headland_turn(x0_m: float, speed_mps: float = 1.8, t_turn_s: float = 1.0,
     return pose_at
 
 
+@pytest.fixture(scope='module')
+def open_ground_turn(orchard) -> list[dict]:
+    """1.8 m/s, 14 m past the row ends, then 2 rad/s within 0.1 s: 20 scans."""
+    return [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
+            for k in range(20)]
+
+
+def _yaw_errors(scans: list[dict], **overrides) -> list[float]:
+    """Each scan's heading error [rad] through a registration with `overrides`."""
+    reg = registration(**overrides)
+    T_world0 = invert_transform(scans[0]['T_world_sensor'])
+    return [pose_error(reg.register(scan['points'], scan['stamp_ns']).T_world_sensor,
+                       T_world0 @ scan['T_world_sensor'])[1] for scan in scans]
+
+
 @pytest.mark.parametrize('yaw_guesses, deskew, gate_m, tracked', [
     (2, False, 1.0, True), (0, False, 1.0, False), (0, True, 1.0, True), (2, True, 1.0, True),
     (0, True, 0.4, False), (2, True, 0.4, True)])
-def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(orchard, yaw_guesses,
+def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(open_ground_turn, yaw_guesses,
                                                                   deskew, gate_m, tracked):
-    """1.8 m/s, 14 m past the row ends, then 2 rad/s within 0.1 s: from a prediction without
-    the turn, ICP fits the ground at any yaw and slides; the row ends that fix the yaw lie
-    outside its gate. Re-acquisition's turned guesses find the turn; without them, and
-    without deskew, the heading is lost (1.6 rad after 1 s here). Deskewed (azimuth times),
-    this turn is tracked even without them within a 1 m correspondence gate, not within
-    0.4 m (a smaller basin: the turned guesses are needed)."""
-    scans = [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
-             for k in range(20)]
+    """From a prediction without the turn, ICP fits the ground at any yaw and slides; the row
+    ends that fix the yaw lie outside its gate. Re-acquisition's turned guesses find the turn;
+    without them, and without deskew, the heading is lost (1.6 rad after 1 s here). Deskewed
+    (azimuth times), this turn is tracked even without them within a 1 m correspondence gate,
+    not within 0.4 m (a smaller basin: the turned guesses are needed)."""
     # Each gate with the relative fitness that keeps this turn (session 36).
-    reg = registration(recovery_yaw_guesses=yaw_guesses, deskew=deskew,
-                       max_correspondence_distance_m=gate_m,
-                       min_relative_fitness={1.0: 0.7, 0.4: 0.5}[gate_m])
-    T_world0 = invert_transform(scans[0]['T_world_sensor'])
-    yaw_errors = []
-    for scan in scans:
-        result = reg.register(scan['points'], scan['stamp_ns'])
-        yaw_errors.append(pose_error(result.T_world_sensor, T_world0 @ scan['T_world_sensor'])[1])
+    yaw_errors = _yaw_errors(open_ground_turn, recovery_yaw_guesses=yaw_guesses, deskew=deskew,
+                             max_correspondence_distance_m=gate_m,
+                             min_relative_fitness={1.0: 0.7, 0.4: 0.5}[gate_m])
     assert max(yaw_errors[:10]) < 0.02  # straight: no trouble either way
     if tracked:
         assert max(yaw_errors) < 0.1, np.round(yaw_errors, 3)
@@ -434,17 +441,12 @@ def test_a_sharp_turn_in_open_ground_is_tracked_with_turn_guesses(orchard, yaw_g
 
 @pytest.mark.parametrize('min_relative_fitness, tracked', [(0.7, False), (0.5, True)])
 def test_within_a_narrow_gate_the_open_ground_turn_needs_a_lower_relative_fitness(
-        orchard, min_relative_fitness, tracked):
+        open_ground_turn, min_relative_fitness, tracked):
     """ICP pairing within 0.4 m: while turning into unseen ground even the true pose has
     few points that close to the map (~0.57 x the recent matches' fitness), so at 0.7 x the
     trust policy refuses the turn and the heading is lost."""
-    scans = [scan_scene(orchard, headland_turn(34.0), k * SCAN_PERIOD_S, seed=k)
-             for k in range(20)]
-    reg = registration(max_correspondence_distance_m=0.4,
-                       min_relative_fitness=min_relative_fitness)
-    T_world0 = invert_transform(scans[0]['T_world_sensor'])
-    yaw_errors = [pose_error(reg.register(scan['points'], scan['stamp_ns']).T_world_sensor,
-                             T_world0 @ scan['T_world_sensor'])[1] for scan in scans]
+    yaw_errors = _yaw_errors(open_ground_turn, max_correspondence_distance_m=0.4,
+                             min_relative_fitness=min_relative_fitness)
     if tracked:
         assert max(yaw_errors) < 0.1, np.round(yaw_errors, 3)
     else:
