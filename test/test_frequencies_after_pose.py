@@ -80,6 +80,7 @@ def test_the_next_scan_finishes_what_its_caller_left(row_scans):
     {'registration.voxel_priority': 'smoothest'},  # the downsample reads them
     {'registration.rough_beam_shift_m': 0.1},  # ... and moves points by them
     {'registration.rough_kernel_scale_m': 0.6},  # the match's kernel reads them
+    {'registration.rough_gate_ratio': 0.4},  # ... and its gate
 ])
 def test_what_needs_the_frequencies_before_the_pose_gets_them_then(row_scans, overrides):
     pipeline, results, done_at_pose = _run(row_scans[:4], overrides)

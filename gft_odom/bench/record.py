@@ -43,6 +43,8 @@ RECORD_LENGTHS_M = (RPE_SHORT_M,) + KITTI_LENGTHS_M
 # option does not throw away every cached run of ours.
 KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'rough_kernel_scale_m'): 0.0,
+                      ('registration', 'rough_gate_ratio'): 0.0,
+                      ('registration', 'refine_correspondence_distance_m'): 0.0,
                       ('registration', 'turn_check'): False,
                       ('registration', 'turn_check_fitness_margin'): 0.03,
                       ('registration', 'turn_guess_deskew'): False,

@@ -133,6 +133,16 @@ class IcpBackend:
         s = np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
         return rough_m + (self.kernel_scale_m - rough_m) * s
 
+    def _point_gate_m(self, distance_m: float) -> float | np.ndarray:
+        """Each scan point's correspondence gate, from `rough_gate_ratio` x `distance_m` where
+        it is rough (or unknown) to `distance_m` where it is smooth; `distance_m` for all when
+        the option is off or the scan has no frequencies."""
+        ratio = self.config.rough_gate_ratio
+        if ratio <= 0.0 or self.point_smoothness is None:
+            return distance_m
+        s = np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
+        return distance_m * (ratio + (1.0 - ratio) * s)
+
     @property
     def solves_on_map_target(self) -> bool:
         """A numpy solver ('gauss_newton' or 'map_tree') matches against the map's
@@ -181,7 +191,8 @@ class IcpBackend:
                                         else None)
         if self.map_tree is not None and target is self.local_map.cloud:
             return self.map_tree.register(np.asarray(source.points), self.local_map.target(),
-                                          init, distance_m, criteria.max_iteration,
+                                          init, self._point_gate_m(distance_m),
+                                          criteria.max_iteration,
                                           self._point_kernel_scale_m())
         if self.estimation == 'gicp':
             estimation = o3d_reg.TransformationEstimationForGeneralizedICP(

@@ -80,10 +80,11 @@ class MapTreeICP:
         self._point_scale_m: np.ndarray | None = None  # of the current call's scan points
 
     def register(self, source_xyz: np.ndarray, target: MapTarget, init: np.ndarray,
-                 max_distance_m: float, max_iterations: int | None = None,
+                 max_distance_m: float | np.ndarray, max_iterations: int | None = None,
                  point_scale_m: np.ndarray | None = None) -> IcpResult:
         """Align `source_xyz` (sensor frame) to `target` from `init` (T_world_sensor);
-        `point_scale_m` (n,): each scan point's own kernel scale (None: `kernel_scale_m`).
+        `point_scale_m` (n,): each scan point's own kernel scale (None: `kernel_scale_m`);
+        `max_distance_m`: one gate, or (n,) each scan point's own.
 
         The result's information is None: `icp_information` computes it from the pairs, as
         for open3d's result."""
@@ -138,14 +139,15 @@ class MapTreeICP:
                    / self.kernel_scale_m)
 
     def _energy(self, world: np.ndarray, target: MapTarget, pairs: np.ndarray,
-                max_distance_m: float) -> float:
+                max_distance_m: float | np.ndarray) -> float:
         """The robust point-to-plane energy: each pair's kernel loss, and a point without a
-        pair the loss of the correspondence distance (so losing pairs is not a gain)."""
+        pair the loss of its correspondence distance (so losing pairs is not a gain)."""
         _, r = _plane_residuals(world, target, pairs)
-        unpaired = world.shape[0] - pairs.shape[0]
+        unpaired = np.ones(world.shape[0], dtype=bool)
+        unpaired[pairs[:, 0]] = False
+        gate_m = np.broadcast_to(np.asarray(max_distance_m, dtype=float), unpaired.shape)
         return float(np.sum(kernel_loss(self.kernel, np.abs(r), self._scale(pairs)))
-                     + unpaired * kernel_loss(self.kernel, np.array([max_distance_m]),
-                                              self.kernel_scale_m)[0])
+                     + np.sum(kernel_loss(self.kernel, gate_m[unpaired], self.kernel_scale_m)))
 
     def _scale(self, pairs: np.ndarray) -> float | np.ndarray:
         """The kernel scale of each pair (one for all when no point has its own)."""
@@ -243,9 +245,9 @@ class ExactNearest:
     the map's index is searched again only for the points whose candidates no longer prove
     it."""
 
-    def __init__(self, target: MapTarget, max_distance_m: float) -> None:
+    def __init__(self, target: MapTarget, max_distance_m: float | np.ndarray) -> None:
         self.target = target
-        self.max_distance_m = max_distance_m
+        self.max_distance_m = max_distance_m  # one gate, or (n,) each query point's own
         self.searched_at: np.ndarray | None = None  # (n, 3) where each point was searched
         self.candidates: np.ndarray | None = None  # (n, k) map indices (n_map: none)
         # (3, n, k) their coordinates, one axis per plane (vector operations on contiguous
@@ -280,7 +282,7 @@ class ExactNearest:
         return valid, best[valid], distance[valid]
 
     def _search(self, rows: np.ndarray, world: np.ndarray) -> None:
-        bound = self.max_distance_m + SEARCH_MARGIN_M
+        bound = float(np.max(self.max_distance_m)) + SEARCH_MARGIN_M
         d, index = self.target.tree.query(world[rows], k=CANDIDATES, distance_upper_bound=bound)
         self.candidates[rows] = index
         # A missing candidate (index n_map) is the far point, so it is never the nearest.

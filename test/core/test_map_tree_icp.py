@@ -578,3 +578,50 @@ def test_a_failed_graduated_match_leaves_no_wide_kernel_behind(scene, monkeypatc
     with pytest.raises(ZeroDivisionError):
         icp.register(source, target, np.eye(4), 1.0)
     assert icp._anneal == 1.0
+
+
+def test_a_gate_per_scan_point_pairs_each_point_within_its_own(scene):
+    """`max_distance_m` (n,): each point is paired only within its own gate, as a full search
+    bounded by that gate finds; one value for all is the one gate."""
+    target, source = scene
+    rng = np.random.default_rng(10)
+    gate_m = rng.choice([0.05, 0.2, 1.0], source.shape[0])
+    nearest = ExactNearest(target, gate_m)
+    world = source + rng.normal(0.0, 0.1, 3)
+    for _ in range(3):
+        valid, index, distance = nearest.query(world)
+        d, full = target.tree.query(world, k=1, distance_upper_bound=1.0)
+        within = np.flatnonzero(d <= gate_m)
+        np.testing.assert_array_equal(valid, within)
+        np.testing.assert_array_equal(index, full[within])
+        world = world + rng.normal(0.0, 0.05, 3)
+    solver = MapTreeICP('tukey', 0.3, 1e-6, 1e-6, 50)
+    one = solver.register(source, target, np.eye(4), 1.0)
+    same = solver.register(source, target, np.eye(4), np.full(source.shape[0], 1.0))
+    np.testing.assert_array_equal(one.transformation, same.transformation)
+    # From a guess 0.2 m off, the pairs of the narrow-gated points are all within 0.1 m.
+    start = make_transform(translation=[0.2, 0.0, 0.0]) @ T_TRUE
+    own_m = np.where(gate_m < 1.0, 0.1, 1.0)
+    narrow = solver.register(source, target, start, own_m)
+    world = source @ narrow.transformation[:3, :3].T + narrow.transformation[:3, 3]
+    scan_index, map_index = narrow.correspondence_set.T
+    pair_m = np.linalg.norm(world[scan_index] - target.points[map_index], axis=1)
+    assert np.all(pair_m <= own_m[scan_index])
+    # ... and the wide-gated third pulls the guess in.
+    assert np.linalg.norm(narrow.transformation[:3, 3] - T_TRUE[:3, 3]) < 0.02
+
+
+def test_rough_gate_ratio_follows_the_frequency_and_needs_map_tree():
+    with pytest.raises(ConfigError, match='rough_gate_ratio'):
+        RegistrationConfig(rough_gate_ratio=0.4, solver='open3d').validate()
+    with pytest.raises(ConfigError, match='rough_gate_ratio'):
+        RegistrationConfig(rough_gate_ratio=-0.4).validate()
+    from gft_odom.core.local_map import LocalMap
+    config = RegistrationConfig(rough_gate_ratio=0.4)
+    assert config.reads_scan_frequencies_before_pose
+    backend = IcpBackend(config, LocalMap(0.3, 40.0, 80000, 60, 1.0, 0.2, 15))
+    backend.use_smoothness(None, np.array([1.0, 0.0, 0.5, np.nan]))
+    np.testing.assert_allclose(backend._point_gate_m(1.0), [1.0, 0.4, 0.7, 0.4])
+    np.testing.assert_allclose(backend._point_gate_m(2.0), [2.0, 0.8, 1.4, 0.8])
+    backend.use_smoothness(None, None)  # no frequencies: one gate for all
+    assert backend._point_gate_m(1.0) == 1.0

@@ -232,6 +232,8 @@ def test_default_config_is_valid_and_from_config_builds():
     ('voxel_priority', 'random', 'voxel_priority'),
     ('turn_continue_min_rad', -0.01, 'turn_continue_min_rad'),
     ('turn_continue_iterations', 0, 'turn_continue_iterations'),
+    ('refine_correspondence_distance_m', 1.0, 'must be below max_correspondence_distance_m'),
+    ('refine_correspondence_distance_m', -0.4, 'refine_correspondence_distance_m'),
 ])
 def test_invalid_config_names_the_field(field, value, message):
     cfg = dataclasses.replace(RegistrationConfig(), **{field: value})
@@ -451,6 +453,24 @@ def test_within_a_narrow_gate_the_open_ground_turn_needs_a_lower_relative_fitnes
         assert max(yaw_errors) < 0.1, np.round(yaw_errors, 3)
     else:
         assert yaw_errors[-1] > 0.3, np.round(yaw_errors, 3)
+
+
+def test_a_refine_within_a_narrow_gate_keeps_the_wide_gates_trust(open_ground_turn, static_pair):
+    """`refine_correspondence_distance_m`: the match at 1 m is refined at 0.4 m from where it
+    ended, and trusted by the 1 m match's fitness: the open-ground turn a 0.4 m gate loses at
+    min_relative_fitness 0.7 is kept; the pose is the refined one."""
+    yaw_errors = _yaw_errors(open_ground_turn, refine_correspondence_distance_m=0.4)
+    assert max(yaw_errors) < 0.1, np.round(yaw_errors, 3)
+    a, b, _ = static_pair
+    results = {}
+    for refine_m in (0.0, 0.4):
+        reg = registration(refine_correspondence_distance_m=refine_m)
+        reg.register(a['points'], a['stamp_ns'])
+        results[refine_m] = reg.register(b['points'], b['stamp_ns'])
+    # Fitness and noise are the 1 m match's (the covariance is not cut short by 0.4 m).
+    assert results[0.4].fitness == results[0.0].fitness
+    assert results[0.4].inlier_rmse_m == results[0.0].inlier_rmse_m
+    assert not np.array_equal(results[0.4].T_world_sensor, results[0.0].T_world_sensor)
 
 
 def test_the_noise_gate_measures_a_matchs_rmse_without_moving_it(static_pair):
