@@ -509,20 +509,6 @@ def test_a_point_kernel_scale_per_scan_point(scene):
     assert error_m(tight) < 0.01 < error_m(one)
 
 
-def test_rough_kernel_scale_follows_the_frequency_and_needs_map_tree():
-    with pytest.raises(ConfigError, match='rough_kernel_scale_m'):
-        RegistrationConfig(rough_kernel_scale_m=0.1, solver='open3d').validate()
-    with pytest.raises(ConfigError, match='rough_kernel_scale_m'):
-        RegistrationConfig(rough_kernel_scale_m=-0.1).validate()
-    from gft_odom.core.local_map import LocalMap
-    config = RegistrationConfig(rough_kernel_scale_m=0.1)
-    backend = IcpBackend(config, LocalMap(0.3, 40.0, 80000, 60, 1.0, 0.2, 15))
-    backend.use_smoothness(None, np.array([1.0, 0.0, 0.5, np.nan]))
-    np.testing.assert_allclose(backend._point_kernel_scale_m(), [0.3, 0.1, 0.2, 0.1])
-    backend.use_smoothness(None, None)  # no frequencies: one scale for all
-    assert backend._point_kernel_scale_m() is None
-
-
 def test_a_graduated_kernel_pulls_in_a_guess_beyond_the_kernel_and_ends_as_without_it(scene):
     target, source = scene
     # The truth is 0.34 m and 4 deg from identity: a Tukey scale of 0.1 m gives most pairs
@@ -611,17 +597,28 @@ def test_a_gate_per_scan_point_pairs_each_point_within_its_own(scene):
     assert np.linalg.norm(narrow.transformation[:3, 3] - T_TRUE[:3, 3]) < 0.02
 
 
-def test_rough_gate_ratio_follows_the_frequency_and_needs_map_tree():
-    with pytest.raises(ConfigError, match='rough_gate_ratio'):
-        RegistrationConfig(rough_gate_ratio=0.4, solver='open3d').validate()
-    with pytest.raises(ConfigError, match='rough_gate_ratio'):
-        RegistrationConfig(rough_gate_ratio=-0.4).validate()
+# Each per-point setting: its value, how a backend reads it, what it gives the scan points of
+# smoothness 1, 0, 0.5 and unknown (NaN, counted rough), and what without frequencies.
+PER_POINT_SETTINGS = {
+    'rough_kernel_scale_m': (0.1, lambda backend: backend._point_kernel_scale_m(),
+                             [0.3, 0.1, 0.2, 0.1], None),
+    'rough_gate_ratio': (0.4, lambda backend: backend._point_gate_m(2.0), [2.0, 0.8, 1.4, 0.8],
+                         2.0),
+}
+
+
+@pytest.mark.parametrize('name', sorted(PER_POINT_SETTINGS))
+def test_a_per_point_setting_follows_the_frequency_and_needs_map_tree(name):
+    value, read, expected, without = PER_POINT_SETTINGS[name]
+    with pytest.raises(ConfigError, match=name):
+        RegistrationConfig(**{name: value, 'solver': 'open3d'}).validate()
+    with pytest.raises(ConfigError, match=name):
+        RegistrationConfig(**{name: -value}).validate()
     from gft_odom.core.local_map import LocalMap
-    config = RegistrationConfig(rough_gate_ratio=0.4)
+    config = RegistrationConfig(**{name: value})
     assert config.reads_scan_frequencies_before_pose
     backend = IcpBackend(config, LocalMap(0.3, 40.0, 80000, 60, 1.0, 0.2, 15))
     backend.use_smoothness(None, np.array([1.0, 0.0, 0.5, np.nan]))
-    np.testing.assert_allclose(backend._point_gate_m(1.0), [1.0, 0.4, 0.7, 0.4])
-    np.testing.assert_allclose(backend._point_gate_m(2.0), [2.0, 0.8, 1.4, 0.8])
-    backend.use_smoothness(None, None)  # no frequencies: one gate for all
-    assert backend._point_gate_m(1.0) == 1.0
+    np.testing.assert_allclose(read(backend), expected)
+    backend.use_smoothness(None, None)  # no frequencies: one value for all
+    assert read(backend) == without
