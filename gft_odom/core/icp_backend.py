@@ -130,8 +130,7 @@ class IcpBackend:
         rough_m = self.config.rough_kernel_scale_m
         if rough_m <= 0.0 or self.point_smoothness is None:
             return None
-        s = np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
-        return rough_m + (self.kernel_scale_m - rough_m) * s
+        return rough_m + (self.kernel_scale_m - rough_m) * self._blend_smoothness()
 
     def _point_gate_m(self, distance_m: float) -> float | np.ndarray:
         """Each scan point's correspondence gate, from `rough_gate_ratio` x `distance_m` where
@@ -140,8 +139,12 @@ class IcpBackend:
         ratio = self.config.rough_gate_ratio
         if ratio <= 0.0 or self.point_smoothness is None:
             return distance_m
-        s = np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
-        return distance_m * (ratio + (1.0 - ratio) * s)
+        return distance_m * (ratio + (1.0 - ratio) * self._blend_smoothness())
+
+    def _blend_smoothness(self) -> np.ndarray:
+        """The scan points' smoothness as the per-point settings blend by it: in [0, 1],
+        unknown counted rough (0)."""
+        return np.clip(np.nan_to_num(resolved(self.point_smoothness), nan=0.0), 0.0, 1.0)
 
     @property
     def solves_on_map_target(self) -> bool:

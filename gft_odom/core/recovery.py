@@ -53,9 +53,10 @@ def fitted_match(status: str, result, T_est: np.ndarray, source_xyz: np.ndarray,
                  icp: IcpBackend, target, velocity: np.ndarray | None = None,
                  wide=None) -> Match:
     """A trusted Match of an ICP `result` (pose `T_est`, by `icp` against `target`): its
-    fitness, RMSE (`IcpBackend.match_rmse_m`) and information. `wide`: the match `result`
-    refined within a narrower gate; its fitness and RMSE are the match's (the trust policy's
-    and the covariance's gate), the information is of the refined pairs."""
+    fitness, RMSE (`IcpBackend.match_rmse_m`) and information. `wide`: the match that
+    `result` refined within a narrower gate (or `result` itself); its fitness and RMSE are
+    the match's (the trust policy's and the covariance's gate), the information is of
+    `result`'s pairs."""
     judged = result if wide is None else wide
     rmse = icp.match_rmse_m(judged, source_xyz, target)
     return Match(status, T_est, float(judged.fitness), rmse,

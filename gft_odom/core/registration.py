@@ -498,20 +498,17 @@ class ScanRegistration:
             init = T_pred
         result = self.icp.register(source, target, init, cfg.max_correspondence_distance_m,
                                    prior=self.mode == 'default')
-        result = self._continued_if_turning(source, target, init, result)
-        wide = None
+        wide = result = self._continued_if_turning(source, target, init, result)
         if cfg.refine_correspondence_distance_m > 0.0 and self.mode == 'default':
-            wide, result = result, self.icp.register(source, target,
-                                                     np.asarray(result.transformation),
-                                                     cfg.refine_correspondence_distance_m)
-        judged = result if wide is None else wide  # the fitness trust reads
+            result = self.icp.register(source, target, np.asarray(wide.transformation),
+                                       cfg.refine_correspondence_distance_m)
+        # `result` gives the pose; `wide` (the same without a refine), what trust reads.
         T_est = np.asarray(result.transformation)
         if self.mode == 'paper':
             T_est = self.T_world_trusted @ T_est
-        refusal = self.trust.refusal(T_est, float(judged.fitness), T_pred, stamp_ns)
+        refusal = self.trust.refusal(T_est, float(wide.fitness), T_pred, stamp_ns)
         if refusal is not None:
-            return Match(refusal, T_pred, float(judged.fitness), float(judged.inlier_rmse),
-                         None)
+            return Match(refusal, T_pred, float(wide.fitness), float(wide.inlier_rmse), None)
         return fitted_match('ok', result, T_est, source_xyz, self.icp, target, wide=wide)
 
     def _continued_if_turning(self, source, target, init: np.ndarray, result):
