@@ -63,7 +63,8 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'kernel_anneal_factor'): 0.7,
                       ('spectral', 'planarity_neighbours'): 15,
                       ('spectral', 'planarity_rough_variation'): 0.1,
-                      ('pipeline', 'frequencies_after_pose'): True}
+                      ('pipeline', 'frequencies_after_pose'): True,
+                      ('registration', 'map_window_rough_view_deg'): 0.0}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

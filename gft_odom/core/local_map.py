@@ -225,7 +225,8 @@ class LocalMap:
                  voxel_keeps: str = 'oldest', anchor_smoothness: float | None = None,
                  anchor_max_points: int = 2_000_000,
                  rough_anchor_view_rad: float | None = None,
-                 rough_anchor_any_side_share: float = 0.0):
+                 rough_anchor_any_side_share: float = 0.0,
+                 rough_window_view_rad: float | None = None):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -263,6 +264,10 @@ class LocalMap:
         self.rough_anchor_view_rad = rough_anchor_view_rad
         # This share of the rough anchors (a fixed draw by voxel) is served from any side too.
         self.rough_anchor_any_side_share = rough_anchor_any_side_share
+        # The window's rough points (every point of a keyframe without frequencies) served by
+        # the same rule as rough anchors: from within this angle of where they were measured
+        # from, or in the any-side share; None: the window serves every point.
+        self.rough_window_view_rad = rough_window_view_rad
         self._anchors = AnchorStore()
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
@@ -459,16 +464,34 @@ class LocalMap:
             *voxel_x_slab(centre_xyz[0], self.max_range_m, self.voxel_size_m))
         if self.rough_anchor_view_rad is None or self.anchor_smoothness <= 0.0:
             return points, smoothness, viewpoints
+        served = self._served_from_its_side(points, smoothness, viewpoints, centre_xyz,
+                                            self.rough_anchor_view_rad)
+        return points[served], smoothness[served], viewpoints[served]
+
+    def _served_from_its_side(self, points: np.ndarray, smoothness: np.ndarray,
+                              viewpoints: np.ndarray, centre_xyz: np.ndarray,
+                              view_rad: float) -> np.ndarray:
+        """Which points a keyframe at `centre_xyz` is served: every smooth one, a rough one
+        (NaN: rough) when seen from within `view_rad` of the direction it was measured from
+        (porous canopy seen from its other side is another cloud), or in the any-side share."""
         to_view = viewpoints - points
         to_centre = centre_xyz - points
         dot = np.einsum('ij,ij->i', to_view, to_centre)
         norms = np.sqrt(np.einsum('ij,ij->i', to_view, to_view)
                         * np.einsum('ij,ij->i', to_centre, to_centre))
-        seen_alike = dot >= np.cos(self.rough_anchor_view_rad) * norms
-        served = self._is_smooth(smoothness) | seen_alike
+        served = self._is_smooth(smoothness) | (dot >= np.cos(view_rad) * norms)
         if self.rough_anchor_any_side_share > 0.0:
             served |= voxel_draw(points, self.voxel_size_m) < self.rough_anchor_any_side_share
-        return points[served], smoothness[served], viewpoints[served]
+        return served
+
+    def _window_part_from_its_side(self, part, centre_xyz: np.ndarray):
+        """A keyframe's (points, smoothness, viewpoints, priority) as served from its side."""
+        points, smoothness, viewpoints, priority = part
+        served = self._served_from_its_side(
+            points, np.full(len(points), np.nan) if smoothness is None else smoothness,
+            viewpoints, centre_xyz, self.rough_window_view_rad)
+        return (points[served], None if smoothness is None else smoothness[served],
+                viewpoints[served], None if priority is None else priority[served])
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
@@ -502,6 +525,8 @@ class LocalMap:
         keyframes = reversed(self._keyframes) if self.voxel_keeps == 'newest' else self._keyframes
         parts = [(pts, s, np.broadcast_to(T[:3, 3], pts.shape), self._view_priority(pts, T))
                  for T, pts, s in keyframes]
+        if self.rough_window_view_rad is not None:
+            parts = [self._window_part_from_its_side(part, centre_xyz) for part in parts]
         if self.n_anchors:
             # Anchors first: they are the oldest content, and a voxel they fill keeps them
             # (with 'nearest' they compete by their range from where they were seen).

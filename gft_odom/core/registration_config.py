@@ -183,6 +183,11 @@ class RegistrationConfig:
     # against 0: training -2 %, held-out -7 % (session 15), drives 231-234 never used for a
     # choice -3 % (session 16); as good without frequencies (docs/registration.md). 0: none.
     map_anchor_rough_any_side_share: float = 0.25
+    # The window's rough points served by the rough anchors' rule too (their side within
+    # this angle, or the any-side share): a lane's canopy leaves the map while the next lane
+    # sees the row from its other side; smooth points (by the frequency, needs map_anchors)
+    # from any side. 0: the window serves every point. Session 38, docs/registration.md.
+    map_window_rough_view_deg: float = 0.0
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
@@ -498,9 +503,12 @@ class RegistrationConfig:
             if getattr(self, name) and self.turn_check_gate_m <= 0.0:
                 raise ConfigError(f'{name} needs turn_check_gate_m > 0 (the share is of the '
                                   'points within that distance of the map)')
-        if not 0.0 <= self.map_anchor_rough_view_deg <= 180.0:
-            raise ConfigError(f'map_anchor_rough_view_deg must be in [0, 180], got '
-                              f'{self.map_anchor_rough_view_deg}')
+        for name in ('map_anchor_rough_view_deg', 'map_window_rough_view_deg'):
+            if not 0.0 <= getattr(self, name) <= 180.0:
+                raise ConfigError(f'{name} must be in [0, 180], got {getattr(self, name)}')
+        if self.map_window_rough_view_deg > 0.0 and not self.map_anchors:
+            raise ConfigError('map_window_rough_view_deg needs map_anchors (its smoothness '
+                              'threshold, map_anchor_smoothness, tells smooth from rough)')
         if not (math.isfinite(self.recovery_correspondence_factor)
                 and self.recovery_correspondence_factor >= 1.0):
             raise ConfigError(f'recovery_correspondence_factor must be >= 1, got '

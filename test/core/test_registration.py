@@ -1040,6 +1040,36 @@ def test_rough_anchors_are_served_only_when_seen_from_their_side():
     assert plain.n_anchors == 1
 
 
+@pytest.mark.parametrize('smoothness', [np.array([0.9, 0.1]), None])
+def test_the_windows_rough_points_are_served_from_their_side_when_asked(smoothness):
+    from gft_odom.core.local_map import LocalMap
+
+    def keyframe(y):
+        T = np.eye(4)
+        T[1, 3] = y
+        return T
+
+    trunk_and_canopy = np.array([[0.0, 2.0, 0.0], [0.5, 2.0, 2.0]])
+    served = {}
+    for view_deg in (None, 60.0):
+        # Two keyframes in the window: the row at y = 2 from the lane at y = 0, then the
+        # far lane at y = 4, which sees the row's other face.
+        local_map = LocalMap(0.1, 100.0, 10_000, 10, 1.0, 0.2, 5, with_normals=False,
+                             anchor_smoothness=0.75,
+                             rough_window_view_rad=None if view_deg is None
+                             else np.radians(view_deg))
+        local_map.add_keyframe(trunk_and_canopy, keyframe(0.0), smoothness)
+        local_map.add_keyframe(np.array([[5.0, 6.0, 0.0]]), keyframe(4.0),
+                               None if smoothness is None else np.array([0.9]))
+        served[view_deg] = {tuple(p) for p in local_map.points_xyz.round(1)}
+    assert {(0.0, 2.0, 0.0), (0.5, 2.0, 2.0)} <= served[None]
+    # The canopy's other face is another cloud; the trunk stays when the frequency says
+    # smooth, and without frequencies every point is rough.
+    assert (0.5, 2.0, 2.0) not in served[60.0]
+    assert ((0.0, 2.0, 0.0) in served[60.0]) == (smoothness is not None)
+    assert (5.0, 6.0, 0.0) in served[60.0]  # the newest keyframe's own points
+
+
 def test_a_smooth_point_takes_over_a_rough_anchors_voxel():
     from gft_odom.core.local_map import LocalMap
     local_map = LocalMap(1.0, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
@@ -1097,11 +1127,15 @@ def test_a_share_of_rough_anchors_drawn_by_voxel_is_served_from_any_side():
         RegistrationConfig(map_anchor_rough_any_side_share=1.5).validate()
 
 
-def test_rough_anchor_view_angle_is_validated():
-    with pytest.raises(ConfigError, match='map_anchor_rough_view_deg'):
-        RegistrationConfig(map_anchor_rough_view_deg=200.0).validate()
-    with pytest.raises(ConfigError, match='map_anchor_rough_view_deg'):
-        RegistrationConfig(map_anchor_rough_view_deg=float('nan')).validate()
+@pytest.mark.parametrize('name', ['map_anchor_rough_view_deg', 'map_window_rough_view_deg'])
+def test_rough_view_angles_are_validated(name):
+    with pytest.raises(ConfigError, match=name):
+        RegistrationConfig(**{name: 200.0}).validate()
+    with pytest.raises(ConfigError, match=name):
+        RegistrationConfig(**{name: float('nan')}).validate()
+    RegistrationConfig(**{name: 90.0}).validate()
+    with pytest.raises(ConfigError, match='needs map_anchors'):
+        RegistrationConfig(map_window_rough_view_deg=90.0, map_anchors=False).validate()
 
 
 def test_a_deferred_map_update_gives_the_same_poses_and_waits_for_update_map(drive):
