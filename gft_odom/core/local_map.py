@@ -226,7 +226,8 @@ class LocalMap:
                  anchor_max_points: int = 2_000_000,
                  rough_anchor_view_rad: float | None = None,
                  rough_anchor_any_side_share: float = 0.0,
-                 rough_window_view_rad: float | None = None):
+                 rough_window_view_rad: float | None = None,
+                 smooth_view_rad: float | None = None):
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
         self.max_points = max_points
@@ -268,6 +269,9 @@ class LocalMap:
         # the same rule as rough anchors: from within this angle of where they were measured
         # from, or in the any-side share; None: the window serves every point.
         self.rough_window_view_rad = rough_window_view_rad
+        # Where those rules serve points, smooth ones too only from within this angle of
+        # their side (a trunk's far face is another surface too); None: from any side.
+        self.smooth_view_rad = smooth_view_rad
         self._anchors = AnchorStore()
         # Set (surface variation of a rough neighbourhood) when a model reads the map's
         # planarity: the served target then carries a smoothness per map point.
@@ -471,15 +475,21 @@ class LocalMap:
     def _served_from_its_side(self, points: np.ndarray, smoothness: np.ndarray,
                               viewpoints: np.ndarray, centre_xyz: np.ndarray,
                               view_rad: float) -> np.ndarray:
-        """Which points a keyframe at `centre_xyz` is served: every smooth one, a rough one
-        (NaN: rough) when seen from within `view_rad` of the direction it was measured from
-        (porous canopy seen from its other side is another cloud), or in the any-side share."""
+        """Which points a keyframe at `centre_xyz` is served: a rough one (NaN: rough) when
+        seen from within `view_rad` of the direction it was measured from (porous canopy seen
+        from its other side is another cloud), a smooth one from any side or within
+        `smooth_view_rad`, and any point in the any-side share."""
         to_view = viewpoints - points
         to_centre = centre_xyz - points
         dot = np.einsum('ij,ij->i', to_view, to_centre)
         norms = np.sqrt(np.einsum('ij,ij->i', to_view, to_view)
                         * np.einsum('ij,ij->i', to_centre, to_centre))
-        served = self._is_smooth(smoothness) | (dot >= np.cos(view_rad) * norms)
+        smooth = self._is_smooth(smoothness)
+        if self.smooth_view_rad is None:
+            served = smooth | (dot >= np.cos(view_rad) * norms)
+        else:
+            served = dot >= np.where(smooth, np.cos(self.smooth_view_rad),
+                                     np.cos(view_rad)) * norms
         if self.rough_anchor_any_side_share > 0.0:
             served |= voxel_draw(points, self.voxel_size_m) < self.rough_anchor_any_side_share
         return served

@@ -136,7 +136,9 @@ def local_map_from_config(cfg: RegistrationConfig) -> LocalMap:
                                if cfg.map_anchor_rough_view_deg > 0.0 else None),
         rough_anchor_any_side_share=cfg.map_anchor_rough_any_side_share,
         rough_window_view_rad=(math.radians(cfg.map_window_rough_view_deg)
-                               if cfg.map_window_rough_view_deg > 0.0 else None))
+                               if cfg.map_window_rough_view_deg > 0.0 else None),
+        smooth_view_rad=(math.radians(cfg.map_smooth_view_deg)
+                         if cfg.map_smooth_view_deg < 180.0 else None))
 
 
 @dataclass

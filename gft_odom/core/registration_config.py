@@ -188,6 +188,10 @@ class RegistrationConfig:
     # sees the row from its other side; smooth points (by the frequency, needs map_anchors)
     # from any side. 0: the window serves every point. Session 38, docs/registration.md.
     map_window_rough_view_deg: float = 0.0
+    # Where those view rules apply (rough anchors, the window's gate), smooth points too are
+    # served only from within this angle of their side: a trunk's or a wall's far face is
+    # another surface as well. 180: from any side. Session 39, docs/registration.md.
+    map_smooth_view_deg: float = 180.0
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
@@ -506,6 +510,9 @@ class RegistrationConfig:
         for name in ('map_anchor_rough_view_deg', 'map_window_rough_view_deg'):
             if not 0.0 <= getattr(self, name) <= 180.0:
                 raise ConfigError(f'{name} must be in [0, 180], got {getattr(self, name)}')
+        if not 0.0 < self.map_smooth_view_deg <= 180.0:
+            raise ConfigError('map_smooth_view_deg must be in (0, 180] (180: smooth points '
+                              f'are served from any side), got {self.map_smooth_view_deg}')
         if self.map_window_rough_view_deg > 0.0 and not self.map_anchors:
             raise ConfigError('map_window_rough_view_deg needs map_anchors (its smoothness '
                               'threshold, map_anchor_smoothness, tells smooth from rough)')

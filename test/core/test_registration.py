@@ -1070,6 +1070,36 @@ def test_the_windows_rough_points_are_served_from_their_side_when_asked(smoothne
     assert (5.0, 6.0, 0.0) in served[60.0]  # the newest keyframe's own points
 
 
+@pytest.mark.parametrize('where', ['window', 'anchors'])
+def test_smooth_points_are_served_from_their_side_when_asked(where):
+    from gft_odom.core.local_map import LocalMap
+
+    def keyframe(x, y):
+        T = np.eye(4)
+        T[:2, 3] = x, y
+        return T
+
+    trunk = np.array([[0.0, 2.0, 0.0]])
+    served = {}
+    for smooth_view_deg in (None, 60.0):
+        for lane_x, lane_y in ((1.0, 0.0), (0.0, 4.0)):  # the same side (27 deg), the far side
+            # A window of two keyframes, or of one (the trunk's keyframe leaves, an anchor).
+            local_map = LocalMap(
+                0.1, 100.0, 10_000, 2 if where == 'window' else 1, 1.0, 0.2, 5,
+                with_normals=False, anchor_smoothness=0.75,
+                rough_anchor_view_rad=np.radians(60.0),
+                rough_window_view_rad=np.radians(60.0) if where == 'window' else None,
+                smooth_view_rad=None if smooth_view_deg is None else np.radians(smooth_view_deg))
+            local_map.add_keyframe(trunk, keyframe(0.0, 0.0), np.array([0.9]))
+            local_map.add_keyframe(np.array([[5.0, 6.0, 0.0]]), keyframe(lane_x, lane_y),
+                                   np.array([0.9]))
+            served[smooth_view_deg, lane_y] = (0.0, 2.0, 0.0) in {
+                tuple(p) for p in local_map.points_xyz.round(1)}
+    # From any side by default; asked, the trunk's far face is not served, its near one is.
+    assert served[None, 0.0] and served[None, 4.0]
+    assert served[60.0, 0.0] and not served[60.0, 4.0]
+
+
 def test_a_smooth_point_takes_over_a_rough_anchors_voxel():
     from gft_odom.core.local_map import LocalMap
     local_map = LocalMap(1.0, 100.0, 10_000, 1, 1.0, 0.2, 5, with_normals=False,
@@ -1127,8 +1157,9 @@ def test_a_share_of_rough_anchors_drawn_by_voxel_is_served_from_any_side():
         RegistrationConfig(map_anchor_rough_any_side_share=1.5).validate()
 
 
-@pytest.mark.parametrize('name', ['map_anchor_rough_view_deg', 'map_window_rough_view_deg'])
-def test_rough_view_angles_are_validated(name):
+@pytest.mark.parametrize('name', ['map_anchor_rough_view_deg', 'map_window_rough_view_deg',
+                                  'map_smooth_view_deg'])
+def test_view_angles_are_validated(name):
     with pytest.raises(ConfigError, match=name):
         RegistrationConfig(**{name: 200.0}).validate()
     with pytest.raises(ConfigError, match=name):
