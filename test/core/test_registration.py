@@ -1167,6 +1167,8 @@ def test_view_angles_are_validated(name):
     RegistrationConfig(**{name: 90.0}).validate()
     with pytest.raises(ConfigError, match='needs map_anchors'):
         RegistrationConfig(map_window_rough_view_deg=90.0, map_anchors=False).validate()
+    with pytest.raises(ConfigError, match='needs a view rule'):
+        RegistrationConfig(map_smooth_view_deg=60.0, map_anchor_rough_view_deg=0.0).validate()
 
 
 def test_a_deferred_map_update_gives_the_same_poses_and_waits_for_update_map(drive):
