@@ -495,13 +495,19 @@ class LocalMap:
         return served
 
     def _window_part_from_its_side(self, part, centre_xyz: np.ndarray):
-        """A keyframe's (points, smoothness, viewpoints, priority) as served from its side."""
+        """A keyframe's (points, smoothness, viewpoints, priority) as served from its side,
+        within the map's radius (the crop that follows would drop the rest: cropped first,
+        the gate's geometry runs on fewer points)."""
         points, smoothness, viewpoints, priority = part
-        served = self._served_from_its_side(
+        offset = points - centre_xyz
+        near = np.flatnonzero(np.einsum('ij,ij->i', offset, offset) <= self.max_range_m ** 2)
+        points, viewpoints = points[near], viewpoints[near]
+        smoothness = None if smoothness is None else smoothness[near]
+        served = near[self._served_from_its_side(
             points, np.full(len(points), np.nan) if smoothness is None else smoothness,
-            viewpoints, centre_xyz, self.rough_window_view_rad)
-        return (points[served], None if smoothness is None else smoothness[served],
-                viewpoints[served], None if priority is None else priority[served])
+            viewpoints, centre_xyz, self.rough_window_view_rad)]
+        return (part[0][served], None if part[1] is None else part[1][served],
+                part[2][served], None if priority is None else priority[served])
 
     def _view_priority(self, points_world: np.ndarray, T_world_sensor: np.ndarray):
         """With voxel_keeps 'nearest': minus each point's range from its keyframe's sensor."""
