@@ -31,11 +31,21 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.io.atomic import write_text_atomic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_record import DRIVE_SETS, NO_ANY_SIDE, NO_DESKEW, RESULTS  # noqa: E402
+from bench_record import (  # noqa: E402
+    DRIVE_SETS,
+    NO_ANY_SIDE,
+    NO_DESKEW,
+    NO_WINDOW_GATE,
+    RESULTS,
+    before_window_gate,
+)
 
 ENTRIES = (
     Entry('gft_odom, map update inline', 'default+gft',
           (('registration.map_update', 'inline'),)),
+    Entry('gft_odom, map served from any side (session 28 default)', 'default+gft',
+          NO_WINDOW_GATE),
+) + before_window_gate((
     Entry('gft_odom, frequencies before the pose (session 31 default)', 'default+gft',
           (('pipeline.frequencies_after_pose', False),)),
     Entry('gft_odom, map update in the background', 'default+gft',
@@ -49,6 +59,7 @@ ENTRIES = (
     Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
     Entry('gft_odom without the any-side share (session 16 default)', 'default+gft',
           NO_DESKEW + NO_ANY_SIDE),
+)) + (
     Entry('kiss-icp', 'kiss-icp'),
 )
 FIGURES = ('latency_median_ms', 'latency_p95_ms', 'ate_rmse_m', 'fallbacks')

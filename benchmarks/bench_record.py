@@ -66,11 +66,28 @@ NO_ANY_SIDE = (('registration.map_anchor_rough_any_side_share', 0.0),)
 NO_DESKEW = (('registration.deskew', False), ('registration.deskew_velocity_window', 5))
 
 
-def before_deskew(entries: tuple[Entry, ...]) -> tuple[Entry, ...]:
-    """Rows measured before deskew was the default, pinned to none (an entry's own deskew
-    override, later in the list, still wins); the peers' rows as they are."""
-    return tuple(Entry(e.label, e.method, NO_DESKEW + tuple(e.overrides))
+# Session 40 made every map point served only from the side it was seen from the default
+# (the window's points as the anchors, smooth ones too); every row before served the window
+# from any side and smooth anchors from any side.
+NO_WINDOW_GATE = (('registration.map_window_rough_view_deg', 0.0),
+                  ('registration.map_smooth_view_deg', 180.0))
+
+
+def _pinned(entries: tuple[Entry, ...], pin: tuple) -> tuple[Entry, ...]:
+    """Our rows with `pin` first (an entry's own override, later in the list, still wins);
+    the peers' rows as they are."""
+    return tuple(Entry(e.label, e.method, pin + tuple(e.overrides))
                  if e.method in ('default+gft', 'default') else e for e in entries)
+
+
+def before_deskew(entries: tuple[Entry, ...]) -> tuple[Entry, ...]:
+    """Rows measured before deskew was the default, pinned to none."""
+    return _pinned(entries, NO_DESKEW)
+
+
+def before_window_gate(entries: tuple[Entry, ...]) -> tuple[Entry, ...]:
+    """Rows measured before the window's points were served from their side (session 40)."""
+    return _pinned(entries, NO_WINDOW_GATE)
 
 
 PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_points', 80000),
@@ -87,6 +104,9 @@ ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
 # through its Python API and through evalio.
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
+    Entry('gft_odom, map served from any side (session 28 default)', 'default+gft',
+          NO_WINDOW_GATE),
+) + before_window_gate((
     Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
 ) + before_deskew((
     Entry('gft_odom + deskew (velocity window 5)', 'default+gft',
@@ -100,7 +120,7 @@ ENTRIES = (
           NO_TURN_GUESSES + NO_VIEW_GATE),
     Entry('gft_odom without anchors (session 5 default)', 'default+gft',
           NO_ANCHORS + NO_TURN_GUESSES),
-)) + (
+))) + (
     Entry('kiss-icp', 'kiss-icp'),
     Entry('kiss-icp (evalio)', 'kiss-icp-evalio'),
     Entry('GenZ-ICP', 'genz-icp'),
@@ -171,17 +191,23 @@ ABLATION_ENTRIES += (
     Entry('GenZ-ICP', 'genz-icp'),
 )
 # Session 18: deskew is the default; the frequency ablation of the new default.
-ABLATION_ENTRIES = before_deskew(ABLATION_ENTRIES) + (
+ABLATION_ENTRIES = before_window_gate(before_deskew(ABLATION_ENTRIES) + (
     Entry('deskew (frequency; the default)', 'default+gft'),
     Entry('deskew, shuffled frequency', 'default+gft', (('pipeline.shuffle_frequencies', True),)),
     Entry('deskew, no frequency (--no-filter)', 'default'),
+)) + (
+    # Session 40: every map point served from its side (the default), its frequency ablation.
+    Entry('served from its side (frequency; the default)', 'default+gft'),
+    Entry('served from its side, shuffled frequency', 'default+gft',
+          (('pipeline.shuffle_frequencies', True),)),
+    Entry('served from its side, no frequency (--no-filter)', 'default'),
 )
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
 # drives only; the held-out record then reports the one chosen against the old default.
 _DESKEW = ('registration.deskew', True)
 _LONG_MAP = (('registration.map_keyframes', 60), ('registration.map_max_points', 80000))
-STUDY_ENTRIES = before_deskew((
+STUDY_ENTRIES = before_window_gate(before_deskew((
     Entry('default', 'default+gft', ORIGINAL_DEFAULTS),
     Entry('deskew', 'default+gft', ORIGINAL_DEFAULTS + (_DESKEW,)),
     Entry('map 60 keyframes', 'default+gft', ORIGINAL_DEFAULTS + _LONG_MAP),
@@ -277,7 +303,7 @@ STUDY_ENTRIES = before_deskew((
     # turned guesses (at a turn's onset in open ground ICP from the prediction turns too
     # little and is trusted: edge drive 221).
     Entry('turn check', 'default+gft', (('registration.turn_check', True),)),
-)
+))
 
 
 def main(argv=None) -> int:

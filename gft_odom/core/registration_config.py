@@ -183,19 +183,20 @@ class RegistrationConfig:
     # against 0: training -2 %, held-out -7 % (session 15), drives 231-234 never used for a
     # choice -3 % (session 16); as good without frequencies (docs/registration.md). 0: none.
     map_anchor_rough_any_side_share: float = 0.25
-    # The window's rough points served by the rough anchors' rule too (their side within
-    # this angle, or the any-side share): a lane's canopy leaves the map while the next lane
-    # sees the row from its other side; smooth points (by the frequency, needs map_anchors)
-    # from any side. 0: the window serves every point. At 60 (sessions 38-39): the record's
-    # mean ATE -6.7 %, but three of six edge drives lost (the default loses two); with every
-    # point gated (no frequency, or map_smooth_view_deg 60) better on both. Not the default.
-    map_window_rough_view_deg: float = 0.0
+    # The window's points served by the rough anchors' rule too (their side within this
+    # angle, or the any-side share): a lane's canopy leaves the map while the next lane sees
+    # the row from its other side. 0: the window serves every point from any side (needs
+    # map_anchors: smoothness by its threshold). The default since session 40, with
+    # map_smooth_view_deg 60 (every point gated); the session 28 default served the window
+    # from any side. Mean ATE, ten record drives 0.0614 -> 0.0561 m; drives 231-234 never
+    # used for a choice 0.0469 -> 0.0432 m; edge drives kept EDGE_KEPT (docs/registration.md).
+    map_window_rough_view_deg: float = 60.0
     # Where those view rules apply (rough anchors, the window's gate), smooth points too are
     # served only from within this angle of their side: a trunk's or a wall's far face is
-    # another surface as well. 180: from any side. Training drives with the window gate
-    # at 60: 60 -> 0.0481, 120 -> 0.0471, 180 -> 0.0460 m; held out 60 is the better (session
-    # 39, docs/registration.md). Not the default: the training drives chose 180.
-    map_smooth_view_deg: float = 180.0
+    # another surface as well. 180: from any side. Training drives with the window gate at
+    # 60: 60 -> 0.0481, 120 -> 0.0471, 180 -> 0.0460 m; held out 180 lost three of six edge
+    # drives and 60 one (session 39), so 60 is the default although training chose 180.
+    map_smooth_view_deg: float = 60.0
     keyframe_distance_m: float = 1.0
     keyframe_rotation_rad: float = 0.2
     normal_neighbours: int = 15
@@ -517,15 +518,17 @@ class RegistrationConfig:
         if not 0.0 < self.map_smooth_view_deg <= 180.0:
             raise ConfigError('map_smooth_view_deg must be in (0, 180] (180: smooth points '
                               f'are served from any side), got {self.map_smooth_view_deg}')
-        if self.map_smooth_view_deg < 180.0 and not (
-                self.map_anchors and (self.map_anchor_rough_view_deg > 0.0
-                                      or self.map_window_rough_view_deg > 0.0)):
+        if not self.map_anchors and (self.map_window_rough_view_deg > 0.0
+                                     or self.map_smooth_view_deg < 180.0):
+            # The view rules tell smooth from rough by the anchors' threshold.
+            raise ConfigError('map_anchors false needs the map served from any side: set '
+                              'map_window_rough_view_deg 0 and map_smooth_view_deg 180 too '
+                              f'(got {self.map_window_rough_view_deg} and '
+                              f'{self.map_smooth_view_deg})')
+        if self.map_smooth_view_deg < 180.0 and not (self.map_anchor_rough_view_deg > 0.0
+                                                     or self.map_window_rough_view_deg > 0.0):
             raise ConfigError('map_smooth_view_deg below 180 needs a view rule to apply to: '
-                              'map_anchors with map_anchor_rough_view_deg > 0, or '
-                              'map_window_rough_view_deg > 0')
-        if self.map_window_rough_view_deg > 0.0 and not self.map_anchors:
-            raise ConfigError('map_window_rough_view_deg needs map_anchors (its smoothness '
-                              'threshold, map_anchor_smoothness, tells smooth from rough)')
+                              'map_anchor_rough_view_deg > 0 or map_window_rough_view_deg > 0')
         if not (math.isfinite(self.recovery_correspondence_factor)
                 and self.recovery_correspondence_factor >= 1.0):
             raise ConfigError(f'recovery_correspondence_factor must be >= 1, got '

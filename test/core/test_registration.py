@@ -1165,10 +1165,15 @@ def test_view_angles_are_validated(name):
     with pytest.raises(ConfigError, match=name):
         RegistrationConfig(**{name: float('nan')}).validate()
     RegistrationConfig(**{name: 90.0}).validate()
-    with pytest.raises(ConfigError, match='needs map_anchors'):
-        RegistrationConfig(map_window_rough_view_deg=90.0, map_anchors=False).validate()
+    # Without anchors the map is served from any side, and the message says how.
+    with pytest.raises(ConfigError, match='map_anchors false needs the map served from any '
+                                          'side: set map_window_rough_view_deg 0'):
+        RegistrationConfig(map_anchors=False).validate()
+    RegistrationConfig(map_anchors=False, map_window_rough_view_deg=0.0,
+                       map_smooth_view_deg=180.0).validate()
     with pytest.raises(ConfigError, match='needs a view rule'):
-        RegistrationConfig(map_smooth_view_deg=60.0, map_anchor_rough_view_deg=0.0).validate()
+        RegistrationConfig(map_smooth_view_deg=60.0, map_anchor_rough_view_deg=0.0,
+                           map_window_rough_view_deg=0.0).validate()
 
 
 def test_a_deferred_map_update_gives_the_same_poses_and_waits_for_update_map(drive):
