@@ -9,9 +9,9 @@ Usage:
       [--only LABEL ...] [--out benchmarks/results]
 
 Simulates the drives once into the cache (`~/.cache/gft_odom/drives` or $GFT_ODOM_DRIVES;
-~0.09 s per full-resolution scan, so the 7 held-out drives, ~2.4 km / ~24k scans, take ~35 min
-on one core), then runs every entry on every drive and writes record_<drives>.json / .md and
-record_<drives>_ate_over_distance.png. The methods take ~1 h more on 2 cores.
+~0.09 s per full-resolution scan, ~4 min a drive on one core), then runs every entry on every
+drive and writes record_<drives>.json / .md and record_<drives>_ate_over_distance.png. The
+record is ten drives: `--drives held-out` (six) and `--drives new-held-out` (four).
 """
 
 from __future__ import annotations
@@ -201,7 +201,11 @@ ABLATION_ENTRIES = before_window_gate(before_deskew(ABLATION_ENTRIES) + (
     Entry('served from its side, shuffled frequency', 'default+gft',
           (('pipeline.shuffle_frequencies', True),)),
     Entry('served from its side, no frequency (--no-filter)', 'default'),
-)
+) + tuple(
+    # Session 41: the control's spread at the session 40 default, two more permutations.
+    Entry(f'served from its side, shuffled frequency (seed {seed})', 'default+gft',
+          (('pipeline.shuffle_frequencies', True), ('pipeline.shuffle_seed', seed)))
+    for seed in (1, 2))
 
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
 # drives only; the held-out record then reports the one chosen against the old default.
