@@ -185,12 +185,13 @@ class RegistrationConfig:
     map_anchor_rough_any_side_share: float = 0.25
     # The window's points served by the rough anchors' rule too (their side within this
     # angle, or the any-side share): a lane's canopy leaves the map while the next lane sees
-    # the row from its other side. 0: the window serves every point from any side (needs
-    # map_anchors: smoothness by its threshold). The default since session 40, with
-    # map_smooth_view_deg 60 (every point gated); the session 28 default served the window
-    # from any side. Mean ATE, ten record drives 0.0614 -> 0.0561 m; drives 231-234 never
-    # used for a choice 0.0469 -> 0.0432 m; edge drives kept 18 -> 19 of 20 (the fourteen
-    # never used: all kept, mean 0.126 -> 0.105 m). Session 40, docs/registration.md.
+    # the row from its other side (above 0 it needs map_anchors, whose smoothness threshold
+    # tells smooth from rough). 0: the window serves every point from any side. The default
+    # since session 40, with map_smooth_view_deg 60 (every point gated); the session 28
+    # default served the window from any side. Mean ATE, ten record drives 0.0614 -> 0.0561
+    # m; drives 231-234 never used for a choice 0.0469 -> 0.0432 m; edge drives kept 18 -> 19
+    # of 20 (the fourteen never used: all kept, mean 0.126 -> 0.105 m). Session 40,
+    # docs/registration.md.
     map_window_rough_view_deg: float = 60.0
     # Where those view rules apply (rough anchors, the window's gate), smooth points too are
     # served only from within this angle of their side: a trunk's or a wall's far face is
