@@ -307,7 +307,13 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     # turned guesses (at a turn's onset in open ground ICP from the prediction turns too
     # little and is trusted: edge drive 221).
     Entry('turn check', 'default+gft', (('registration.turn_check', True),)),
-))
+)) + (
+    # Session 42: on edge drive 221 the poses slid 0.7 m through a headland corner and three
+    # good matches after it were refused for the bounds; the next match that agrees with a
+    # refused one is trusted (on the default of session 40).
+    Entry('a refused match vouches for the next', 'default+gft',
+          (('registration.plausible_from_refused', True),)),
+)
 
 
 def main(argv=None) -> int:

@@ -91,6 +91,9 @@ class MotionModel:
         self.trusted_stamp_ns: int | None = None
         # The trusted pose before it, and its stamp (`plausible_from_previous_trusted`).
         self.previous_trusted: tuple[np.ndarray, int] | None = None
+        # The last match refused since the trusted pose, and its stamp
+        # (`plausible_from_refused`).
+        self.refused_match: tuple[np.ndarray, int] | None = None
         # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
         self.velocity = np.zeros(6)
         # The velocities of the last trusted scans and the time each spans: deskew assumes
@@ -175,25 +178,47 @@ class MotionModel:
         from the last trusted pose."""
         if self.is_plausible(*self.since_trusted(stamp_ns, T_world_est)):
             return True
-        return self._from_previous_trusted(stamp_ns, T_world_est) is not None
+        return self._from_second_reference(stamp_ns, T_world_est) is not None
 
-    def _from_previous_trusted(self, stamp_ns: int,
-                               T_world_est: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """The motion from the trusted pose before the last to `T_world_est` and the time
-        it took, when it is within the bounds, the option is on, that pose is within a gap,
-        and `stamp_ns` is at least half a scan period after the last trusted pose (sooner, a
-        scan is more likely a copy than the next sweep: the fault suite's mirrored copies,
-        30 ms after a scan, are judged from that pose alone). None otherwise."""
-        if not self.config.plausible_from_previous_trusted or self.previous_trusted is None:
+    def vouched_by_refused(self, stamp_ns: int, T_world_est: np.ndarray) -> bool:
+        """Plausible only from the last refused match (`plausible_from_refused`)."""
+        if self.refused_match is None or self._within_bounds(
+                *self.since_trusted(stamp_ns, T_world_est)):
+            return False
+        second = self._from_second_reference(stamp_ns, T_world_est)
+        return second is not None and second[2]
+
+    def remember_refused(self, stamp_ns: int, T_world_est: np.ndarray) -> None:
+        """A match that fitted as well as the recent ones, refused for the bounds or the
+        jump: the reference a next match that agrees with it may be measured from."""
+        if self.config.plausible_from_refused:
+            self.refused_match = (np.array(T_world_est, dtype=float), int(stamp_ns))
+
+    def _from_second_reference(self, stamp_ns: int, T_world_est: np.ndarray
+                               ) -> tuple[np.ndarray, float, bool] | None:
+        """(motion, time it took, whether from the refused match) from the trusted pose
+        before the last (`plausible_from_previous_trusted`) or else the last refused match
+        (`plausible_from_refused`) to `T_world_est`, when within the bounds, that pose is
+        within a gap, and `stamp_ns` is at least half a scan period after the last trusted
+        pose and the refused match (sooner, a scan is more likely a copy than the next
+        sweep: the fault suite's mirrored copies, 30 ms after a scan, are judged from that
+        pose alone). None otherwise."""
+        half_period_s = 0.5 * self.config.scan_period_s
+        if self._elapsed_since_trusted(stamp_ns) < half_period_s:
             return None
-        if self._elapsed_since_trusted(stamp_ns) < 0.5 * self.config.scan_period_s:
-            return None
-        T_world_ref, ref_stamp_ns = self.previous_trusted
-        elapsed_s = (int(stamp_ns) - ref_stamp_ns) * 1e-9
-        if not 0.0 < elapsed_s <= self.config.max_gap_s:
-            return None
-        motion = invert_transform(T_world_ref) @ T_world_est
-        return (motion, elapsed_s) if self._within_bounds(motion, elapsed_s) else None
+        references = []
+        if self.config.plausible_from_previous_trusted and self.previous_trusted is not None:
+            references.append((self.previous_trusted, False))
+        if self.config.plausible_from_refused and self.refused_match is not None:
+            references.append((self.refused_match, True))
+        for (T_world_ref, ref_stamp_ns), refused in references:
+            elapsed_s = (int(stamp_ns) - ref_stamp_ns) * 1e-9
+            if not (half_period_s if refused else 0.0) < elapsed_s <= self.config.max_gap_s:
+                continue
+            motion = invert_transform(T_world_ref) @ T_world_est
+            if self._within_bounds(motion, elapsed_s):
+                return motion, elapsed_s, refused
+        return None
 
     def _periods(self, span_s):
         """`span_s` in scan periods, at least MIN_PERIOD_SHARE (scalar or array)."""
@@ -219,9 +244,9 @@ class MotionModel:
         if not self._within_bounds(motion, elapsed_s):
             # Within them from the trusted pose before (`plausible_since_trusted`): the
             # motion since that one.
-            previous = self._from_previous_trusted(stamp_ns, T_world_est)
-            if previous is not None:
-                motion, elapsed_s = previous
+            second = self._from_second_reference(stamp_ns, T_world_est)
+            if second is not None:
+                motion, elapsed_s, _ = second
         if 0.0 < elapsed_s <= self.config.max_gap_s:
             return self.capped(twist_of(motion, elapsed_s))
         return None
@@ -298,8 +323,14 @@ class MotionModel:
         (`recovered`) to `recovered_velocity` (its winning guess, or a retry's motion)."""
         velocity = self.implied_velocity(stamp_ns, T_world_new) if status == 'ok' else None
         span_s = self.since_trusted(stamp_ns, T_world_new)[1]
+        vouched = status == 'ok' and self.vouched_by_refused(stamp_ns, T_world_new)
         if self.trusted_stamp_ns is not None:
             self.previous_trusted = (self.T_world_trusted, self.trusted_stamp_ns)
+        if vouched:
+            # Two matches that agree: the refused one was right, the trusted pose the error.
+            self.previous_trusted = self.refused_match
+            span_s = (int(stamp_ns) - self.refused_match[1]) * 1e-9
+        self.refused_match = None
         self.T_world_trusted = T_world_new.copy()
         self.trusted_stamp_ns = int(stamp_ns)
         if velocity is not None:

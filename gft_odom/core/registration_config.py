@@ -325,6 +325,12 @@ class RegistrationConfig:
     # 221 / 226 / 242 / 243 (mean ATE 5.55 -> 0.89 m); on four new edge seeds 2.21 -> 0.09 m,
     # training drives 0.0545 -> 0.0558 m (docs/registration.md, session 28).
     plausible_from_previous_trusted: bool = True
+    # A match beyond the bounds (or the jump) from the trusted poses that fits as well as the
+    # recent ones is remembered; the next match within the bounds from it is trusted, and the
+    # refused one becomes the trusted pose before it. Two agreeing fits outvote a trusted pose
+    # that slid: edge drive 221 (session 42) slid 0.7 m through a headland corner, then refused
+    # three good matches in a row, lost track and re-acquired 0.41 rad off.
+    plausible_from_refused: bool = False
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
     # the same trajectory, 0.74-0.87x the latency median on the held-out drives), 'open3d'

@@ -79,6 +79,9 @@ class TrustPolicy:
         if not self.motion.plausible_since_trusted(stamp_ns, T_est):
             log.debug('ICP implies motion beyond the bounds since the last trusted pose')
             return 'fallback_implausible'
-        if self.motion.jumped(T_pred, T_est, stamp_ns):
+        if (self.motion.jumped(T_pred, T_est, stamp_ns)
+                and not self.motion.vouched_by_refused(stamp_ns, T_est)):
+            # (A match that agrees with the last refused one is judged by that agreement:
+            # the prediction was extrapolated from the pose the two of them disown.)
             return 'fallback_diverged'
         return None

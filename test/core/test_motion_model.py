@@ -111,3 +111,36 @@ def test_a_slid_trusted_pose_can_be_passed_over_by_the_one_before_it(second_refe
     assert velocity[3] == pytest.approx(1.8 if second_reference else 2.0)
     # Far beyond the bounds from both: refused either way.
     assert not model.plausible_since_trusted(2 * STEP_NS, make_transform(None, [0.9, 0, 0]))
+
+
+@pytest.mark.parametrize('from_refused', [False, True])
+def test_a_match_that_agrees_with_the_refused_one_before_it_is_plausible(from_refused):
+    """1.8 m/s along x; two trusted poses slid back (-0.25 m at 0.1 s, -0.5 m at 0.2 s).
+    The match at 0.3 s, at the truth (0.54 m), is beyond the bounds from both: refused, and
+    remembered. The next, at 0.4 s (0.72 m), still is (1.22 m in 0.2 s, 0.97 m in 0.3 s),
+    but it is 0.18 m from the refused one: with the option it is trusted, the refused pose
+    becomes the trusted pose before it, and the velocity is from there."""
+    model = MotionModel(RegistrationConfig(plausible_from_refused=from_refused))
+    model.trust(0, np.eye(4), 'first')
+    for step, x_m in ((1, -0.25), (2, -0.5)):
+        model.trust(step * STEP_NS, make_transform(None, [x_m, 0.0, 0.0]), 'ok')
+    refused = make_transform(None, [0.54, 0.0, 0.0])
+    assert not model.plausible_since_trusted(3 * STEP_NS, refused)
+    model.remember_refused(3 * STEP_NS, refused)
+    agreeing = make_transform(None, [0.72, 0.0, 0.0])
+    assert model.plausible_since_trusted(4 * STEP_NS, agreeing) is from_refused
+    assert model.vouched_by_refused(4 * STEP_NS, agreeing) is from_refused
+    # A copy 30 ms after the refused match is no second sweep; a match that disagrees with
+    # it (0.5 m on) is refused either way.
+    assert not model.plausible_since_trusted(3 * STEP_NS + STEP_NS * 3 // 10,
+                                             make_transform(None, [0.58, 0.0, 0.0]))
+    assert not model.plausible_since_trusted(4 * STEP_NS, make_transform(None, [1.04, 0, 0]))
+    if not from_refused:
+        assert model.refused_match is None  # the option off remembers nothing
+        return
+    model.trust(4 * STEP_NS, agreeing, 'ok')
+    assert model.velocity[3] == pytest.approx(1.8)  # from the refused pose over 0.1 s
+    T_previous, stamp_previous = model.previous_trusted
+    np.testing.assert_allclose(T_previous, refused)
+    assert stamp_previous == 3 * STEP_NS
+    assert model.refused_match is None  # a trusted pose ends what it vouched for
