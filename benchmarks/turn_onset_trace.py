@@ -1,8 +1,10 @@
 """A turn's onset, traced: each scan's match from the prediction, where ICP's iteration cap
-stopped it, where it ends when carried on, and where it ends from the true heading.
+stopped it, where it ends when carried on, and where it ends from the true heading; and each
+scan's outcome (status, heading and position error, the speed a refused match implied).
 
 docs/registration.md, session 30: on edge drive 226 the matches of scans 1136-1138 hit the cap
-while still turning, 0.04-0.09 rad short of where they converge.
+while still turning, 0.04-0.09 rad short of where they converge. Session 42: on edge drive
+221 (scans 1095-1120) three good matches after a corner are refused for the speed bound.
 
     .venv/bin/python benchmarks/turn_onset_trace.py --drive edge_lawnmower-226 --scans 1133 1140
 
@@ -50,7 +52,14 @@ class TracingPipeline(OdometryPipeline):
     def __init__(self, config, truth, first: int, last: int, carry_on: int):
         super().__init__(config)
         self.truth, self.first, self.last, self.carry_on = truth, first, last, carry_on
-        self.index, self.stamp_ns, self.rows = -1, 0, []
+        self.index, self.stamp_ns, self.rows, self.scans = -1, 0, [], []
+        self.last_registration = None
+        register = self.registration.register
+
+        def kept(*args, **kwargs):
+            self.last_registration = register(*args, **kwargs)
+            return self.last_registration
+        self.registration.register = kept
         icp = self.registration.icp
         plain = icp.register
 
@@ -82,11 +91,21 @@ class TracingPipeline(OdometryPipeline):
     def register_frame(self, scan, freqs=None):
         self.index += 1
         self.stamp_ns = int(scan.stamp_ns)
+        self.last_registration = None
         result = super().register_frame(scan, freqs)
         if self.first <= self.index <= self.last and self.rows:
             self.rows[-1].setdefault('status', result.status)
             self.rows[-1].setdefault('final_rad', heading_error_rad(result.T_world_sensor,
                                                                     self._true_pose()))
+        if self.first <= self.index <= self.last:
+            truth, reg = self._true_pose(), self.last_registration
+            self.scans.append({
+                'scan': self.index, 'status': result.status,
+                'heading_rad': heading_error_rad(result.T_world_sensor, truth),
+                'position_m': float(np.linalg.norm(result.T_world_sensor[:3, 3]
+                                                   - truth[:3, 3])),
+                'fitness': None if reg is None else float(reg.fitness),
+                'refused_speed_mps': None if reg is None else reg.refused_speed_mps})
         if self.index >= self.last:
             raise _Done
         return result
@@ -126,11 +145,18 @@ def main(argv=None) -> int:
               f"({r['match_iterations']:3d}) {r['carried_on_rad']:+13.3f} "
               f"({r['carried_on_iterations']:3d}) {r['from_true_heading_rad']:+17.3f} "
               f"{r.get('final_rad', float('nan')):+7.3f}  {r.get('status', '')}")
+    print('scan  status                  heading  position  fitness  refused speed [m/s]')
+    for r in pipeline.scans:
+        speed = r['refused_speed_mps']
+        print(f"{r['scan']:5d} {r['status']:23s} {r['heading_rad']:+7.3f} {r['position_m']:9.3f}"
+              f"  {r['fitness'] if r['fitness'] is not None else float('nan'):7.3f}"
+              f"  {'' if speed is None else f'{speed:.2f}'}")
     out = args.out / f'turn_onset_{args.drive}.json'
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out, json.dumps({'drive': args.drive, 'scans': [first, last],
                                        'carry_on': args.carry_on, 'overrides': args.set,
-                                       'rows': pipeline.rows}, indent=2))
+                                       'rows': pipeline.rows, 'outcomes': pipeline.scans},
+                                      indent=2))
     print(f'wrote {out}')
     return 0
 

@@ -42,3 +42,11 @@ def test_the_trace_has_one_row_per_matched_scan_and_stops_after_the_last(short_d
         assert abs(r['from_true_heading_rad']) < 0.01
         assert np.isfinite([r['prediction_rad'], r['match_rad'], r['carried_on_rad'],
                             r['final_rad']]).all()
+    # Each scan's outcome, matched or not: on this straight start every one is trusted,
+    # close to the truth and refused nothing.
+    outcomes = written['outcomes']
+    assert [o['scan'] for o in outcomes] == [3, 4, 5, 6]
+    for o, r in zip(outcomes, rows):
+        assert o['status'] == 'ok' and o['refused_speed_mps'] is None
+        assert o['heading_rad'] == pytest.approx(r['final_rad'])
+        assert o['position_m'] < 0.5 and 0.5 < o['fitness'] <= 1.0
