@@ -692,6 +692,22 @@ def test_motion_beyond_the_physical_bounds_is_implausible_and_stays_out_of_the_m
     assert default.is_plausible(T_ab, 0.1) and not default.is_plausible(T_ab, 0.01)
 
 
+@pytest.mark.parametrize('from_refused', [False, True])
+def test_a_match_refused_for_the_bounds_is_remembered_only_with_plausible_from_refused(
+        static_pair, from_refused):
+    a, b, T_ab = static_pair
+    reg = registration(max_speed_mps=1.0, plausible_from_refused=from_refused)
+    reg.register(a['points'], a['stamp_ns'])
+    assert reg.register(b['points'], b['stamp_ns']).status == 'fallback_implausible'
+    if not from_refused:
+        assert reg.motion.refused_match is None
+        return
+    T_refused, stamp_ns = reg.motion.refused_match
+    assert stamp_ns == b['stamp_ns']
+    # The match's pose, not the prediction the scan fell back to.
+    np.testing.assert_allclose(T_refused[:3, 3], T_ab[:3, 3], atol=0.05)
+
+
 def test_prediction_is_per_second_and_capped_by_the_bounds():
     reg = registration()
     capped = reg.capped(np.array([0.0, 0.0, 10.0, 3.0, 4.0, 0.0]))

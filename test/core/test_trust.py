@@ -62,3 +62,20 @@ def test_the_fallback_run_ends_tracking_and_a_trusted_pose_ends_the_run():
     assert policy.consecutive_fallbacks == 0
     assert policy.n_fallbacks == CONFIG.max_consecutive_fallbacks
     assert policy.fell_back() is False
+
+
+@pytest.mark.parametrize('from_refused', [False, True])
+def test_a_match_that_agrees_with_a_refused_one_is_not_held_to_the_prediction(from_refused):
+    """The trusted pose slid 0.7 m back along x (origin, truth at 0.7 m); the prediction is
+    extrapolated from it. The match at 0.1 s (0.88 m) is refused for the bounds; the one at
+    0.2 s (1.06 m) agrees with it but is 1.06 m from the prediction (jump bound 2 x 0.5 m)."""
+    motion = MotionModel(RegistrationConfig(plausible_from_refused=from_refused))
+    motion.trust(0, np.eye(4), 'first')
+    policy = TrustPolicy(motion.config, motion)
+    refused = make_transform(None, [0.88, 0.0, 0.0])
+    assert policy.refusal(refused, 0.9, np.eye(4), STEP_NS) == 'fallback_implausible'
+    motion.remember_refused(STEP_NS, refused)
+    agreeing = make_transform(None, [1.06, 0.0, 0.0])
+    # Plausible from nowhere without the option; with it, plausible and not a jump.
+    expected = None if from_refused else 'fallback_implausible'
+    assert policy.refusal(agreeing, 0.9, np.eye(4), 2 * STEP_NS) == expected
