@@ -328,8 +328,10 @@ class RegistrationConfig:
     # A match beyond the bounds (or the jump) from the trusted poses that fits as well as the
     # recent ones is remembered; the next match within the bounds from it is trusted, and the
     # refused one becomes the trusted pose before it. Two agreeing fits outvote a trusted pose
-    # that slid: edge drive 221 (session 42) slid 0.7 m through a headland corner, then refused
-    # three good matches in a row, lost track and re-acquired 0.41 rad off.
+    # that slid: edge drive 221 slid 0.5 m at a headland corner, then refused three good
+    # matches in a row, lost track and re-acquired 0.41 rad off. Off: 221 7.40 -> 2.84 m (still
+    # lost), level on the nineteen other edge drives, no pose of the record changes
+    # (docs/registration.md, session 42).
     plausible_from_refused: bool = False
     # The solver of default mode: 'map_tree' (core/map_tree_icp.py: open3d's point-to-plane
     # ICP step for step, over a search index built once per map rebuild, not once per call:
