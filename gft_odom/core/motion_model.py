@@ -181,7 +181,10 @@ class MotionModel:
         return self._from_second_reference(stamp_ns, T_world_est) is not None
 
     def vouched_by_refused(self, stamp_ns: int, T_world_est: np.ndarray) -> bool:
-        """Plausible only from the last refused match (`plausible_from_refused`)."""
+        """Beyond the bounds from the last trusted pose and the one before it, within them
+        from the last refused match (`plausible_from_refused`). A pose within the bounds from
+        the trusted pose is not vouched for, so the jump check still holds it to the
+        prediction."""
         if self.refused_match is None or self._within_bounds(
                 *self.since_trusted(stamp_ns, T_world_est)):
             return False
@@ -190,7 +193,10 @@ class MotionModel:
 
     def remember_refused(self, stamp_ns: int, T_world_est: np.ndarray) -> None:
         """A match that fitted as well as the recent ones, refused for the bounds or the
-        jump: the reference a next match that agrees with it may be measured from."""
+        jump: the reference a next match that agrees with it may be measured from. Kept until
+        a pose is trusted or a newer match is refused (through a loss of track as well:
+        re-acquisition may take a fit plausible only from it, without making it the trusted
+        pose before), and used for at most `max_gap_s`."""
         if self.config.plausible_from_refused:
             self.refused_match = (np.array(T_world_est, dtype=float), int(stamp_ns))
 
@@ -200,9 +206,9 @@ class MotionModel:
         before the last (`plausible_from_previous_trusted`) or else the last refused match
         (`plausible_from_refused`) to `T_world_est`, when within the bounds, that pose is
         within a gap, and `stamp_ns` is at least half a scan period after the last trusted
-        pose and the refused match (sooner, a scan is more likely a copy than the next
-        sweep: the fault suite's mirrored copies, 30 ms after a scan, are judged from that
-        pose alone). None otherwise."""
+        pose and more than that after the refused match (sooner, a scan is more likely a copy
+        than the next sweep: the fault suite's mirrored copies, 30 ms after a scan, are judged
+        from that pose alone). None otherwise."""
         half_period_s = 0.5 * self.config.scan_period_s
         if self._elapsed_since_trusted(stamp_ns) < half_period_s:
             return None

@@ -144,3 +144,8 @@ def test_a_match_that_agrees_with_the_refused_one_before_it_is_plausible(from_re
     np.testing.assert_allclose(T_previous, refused)
     assert stamp_previous == 3 * STEP_NS
     assert model.refused_match is None  # a trusted pose ends what it vouched for
+    model.remember_refused(5 * STEP_NS, refused)
+    model.lose_track('test')  # kept through a loss: re-acquisition may use it
+    assert model.refused_match is not None
+    model.reset()
+    assert model.refused_match is None
