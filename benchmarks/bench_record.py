@@ -313,6 +313,12 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     # refused one is trusted (on the default of session 40).
     Entry('a refused match vouches for the next', 'default+gft',
           (('registration.plausible_from_refused', True),)),
+    # Session 42: two of the scan's own frequency roles (sessions 18-19, under the map of
+    # then) screened again on the session 40 map, training drives first.
+    Entry('source voxels keep the smoothest point (session 40 map)', 'default+gft',
+          (('registration.voxel_priority', 'smoothest'),)),
+    Entry('canopy kernel 0.15 m (session 40 map)', 'default+gft',
+          (('registration.rough_kernel_scale_m', 0.15),)),
 )
 
 
