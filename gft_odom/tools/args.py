@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def add_bags(parser: argparse.ArgumentParser, help: str = 'bag file(s) or rosbag2 folder',
@@ -10,6 +11,15 @@ def add_bags(parser: argparse.ArgumentParser, help: str = 'bag file(s) or rosbag
     """The input bags (positional) and --topic."""
     parser.add_argument('bags', nargs=nargs, metavar='BAG', help=help)
     parser.add_argument('--topic', default='/velodyne_points', help='PointCloud2 topic')
+
+
+def check_bags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A missing "bag" spelled KEY=VALUE is a second override after one --set (`--set a=1
+    b=2`): say so, rather than that no such bag exists."""
+    for bag in getattr(args, 'bags', None) or ():
+        if '=' in bag and not Path(bag).exists():
+            parser.error(f'{bag!r} is not a bag but looks like a parameter: give each its own '
+                         '--set (--set SECTION.KEY=VALUE --set SECTION.KEY2=VALUE2)')
 
 
 def add_config(parser: argparse.ArgumentParser,

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from gft_odom.errors import GftOdomError
+from gft_odom.tools.args import check_bags
 
 SUBCOMMAND_MODULES = (
     'simulate',
@@ -90,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the gft-odom command line; package errors become one log line and exit 1."""
     parser = build_parser(_requested(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
+    check_bags(parser, args)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format='%(levelname)s %(name)s: %(message)s')
     try:

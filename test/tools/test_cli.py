@@ -64,3 +64,15 @@ def test_replay_takes_params_file_as_well_as_config():
     parser = build_parser('replay')
     args = parser.parse_args(['replay', 'x.bag', '--out', 'o', '--params-file', 'p.yaml'])
     assert args.config == 'p.yaml'
+
+
+def test_a_second_override_after_one_set_is_named_as_such(tmp_path, capsys):
+    """`--set a=1 b=2` leaves b=2 among the bags: the error says to give it its own --set."""
+    bag = tmp_path / 'drive.bag'
+    bag.write_bytes(b'')
+    with pytest.raises(SystemExit) as exit_info:
+        main(['replay', str(bag), '--out', str(tmp_path / 'out'), '--set',
+              'registration.deskew=false', 'registration.turn_check=false'])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "'registration.turn_check=false' is not a bag" in err and '--set' in err
