@@ -52,7 +52,7 @@ class TracingPipeline(OdometryPipeline):
     def __init__(self, config, truth, first: int, last: int, carry_on: int):
         super().__init__(config)
         self.truth, self.first, self.last, self.carry_on = truth, first, last, carry_on
-        self.index, self.stamp_ns, self.rows, self.scans = -1, 0, [], []
+        self.index, self.stamp_ns, self.rows, self.outcomes = -1, 0, [], []
         self.last_registration = None
         register = self.registration.register
 
@@ -99,7 +99,7 @@ class TracingPipeline(OdometryPipeline):
                                                                     self._true_pose()))
         if self.first <= self.index <= self.last:
             truth, reg = self._true_pose(), self.last_registration
-            self.scans.append({
+            self.outcomes.append({
                 'scan': self.index, 'status': result.status,
                 'heading_rad': heading_error_rad(result.T_world_sensor, truth),
                 'position_m': float(np.linalg.norm(result.T_world_sensor[:3, 3]
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
               f"({r['carried_on_iterations']:3d}) {r['from_true_heading_rad']:+17.3f} "
               f"{r.get('final_rad', float('nan')):+7.3f}  {r.get('status', '')}")
     print('scan  status                  heading  position  fitness  refused speed [m/s]')
-    for r in pipeline.scans:
+    for r in pipeline.outcomes:
         speed = r['refused_speed_mps']
         print(f"{r['scan']:5d} {r['status']:23s} {r['heading_rad']:+7.3f} {r['position_m']:9.3f}"
               f"  {r['fitness'] if r['fitness'] is not None else float('nan'):7.3f}"
@@ -155,7 +155,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out, json.dumps({'drive': args.drive, 'scans': [first, last],
                                        'carry_on': args.carry_on, 'overrides': args.set,
-                                       'rows': pipeline.rows, 'outcomes': pipeline.scans},
+                                       'rows': pipeline.rows, 'outcomes': pipeline.outcomes},
                                       indent=2))
     print(f'wrote {out}')
     return 0

@@ -511,8 +511,7 @@ class ScanRegistration:
         if self.mode == 'paper':
             T_est = self.T_world_trusted @ T_est
         refusal = self.trust.refusal(T_est, float(wide.fitness), T_pred, stamp_ns)
-        if refusal == 'fallback_implausible' or (refusal == 'fallback_diverged'
-                                                 and np.all(np.isfinite(T_est))):
+        if refusal in ('fallback_implausible', 'fallback_diverged') and np.all(np.isfinite(T_est)):
             self.motion.remember_refused(stamp_ns, T_est)  # it fitted: the bounds refused it
         if refusal is not None:
             return Match(refusal, T_pred, float(wide.fitness), float(wide.inlier_rmse), None)
