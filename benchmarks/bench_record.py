@@ -319,7 +319,30 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
           (('registration.voxel_priority', 'smoothest'),)),
     Entry('canopy kernel 0.15 m (session 40 map)', 'default+gft',
           (('registration.rough_kernel_scale_m', 0.15),)),
-)
+    # Session 43: the frequency thins the source's canopy (rough points one per coarser
+    # voxel), so ground and trunks weigh more in the match; its shuffled control thins a
+    # random share of the same size.
+) + tuple(
+    Entry(f'rough source voxel {size} m{label}', 'default+gft',
+          (('registration.rough_voxel_size_m', size),) + extra)
+    for size in (0.5, 0.6, 0.7, 0.8)
+    for label, extra in (('', ()), (', shuffled frequency',
+                                    (('pipeline.shuffle_frequencies', True),)))) + tuple(
+    # ... with the smooth points denser than the default's 0.4 m source voxel; and the
+    # source voxel alone, every point alike (the thinning's geometric control).
+    Entry(f'source voxel 0.3 m, rough {size} m{label}', 'default+gft',
+          (('registration.voxel_size_m', 0.3), ('registration.rough_voxel_size_m', size))
+          + extra)
+    for size in (0.4, 0.6)
+    for label, extra in (('', ()), (', shuffled frequency',
+                                    (('pipeline.shuffle_frequencies', True),)))) + tuple(
+    Entry(f'source voxel {size} m', 'default+gft', (('registration.voxel_size_m', size),))
+    for size in (0.25, 0.3, 0.35)) + tuple(
+    # The noise floor of a screen: a source voxel 2.5 % off the default's moves every voxel
+    # boundary and nothing else.
+    Entry(f'source voxel {size} m (noise floor)', 'default+gft',
+          (('registration.voxel_size_m', size),))
+    for size in (0.39, 0.41))
 
 
 def main(argv=None) -> int:

@@ -66,7 +66,8 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('pipeline', 'frequencies_after_pose'): True,
                       ('registration', 'map_window_rough_view_deg'): 0.0,
                       ('registration', 'map_smooth_view_deg'): 180.0,
-                      ('registration', 'plausible_from_refused'): False}
+                      ('registration', 'plausible_from_refused'): False,
+                      ('registration', 'rough_voxel_size_m'): 0.0}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

@@ -355,6 +355,8 @@ class ScanRegistration:
         cfg, nu = self.config, sweep.nu
         priority = resolved(nu) if cfg.voxel_priority == 'smoothest' else None
         sweep.keep = voxel_downsample_indices(sweep.points_xyz, cfg.voxel_size_m, priority)
+        if cfg.rough_voxel_size_m > 0.0 and nu is not None:
+            sweep.keep = thinned_rough(sweep.points_xyz, sweep.keep, resolved(nu), cfg)
         sweep.source_xyz = sweep.points_xyz[sweep.keep]
         source_smoothness = (smoothness_from_nu(resolved(nu)[sweep.keep], cfg.smooth_nu)
                              if nu is not None and cfg.residual_model == 'frequency' else None)
@@ -628,6 +630,16 @@ def _smoothness_or_unknown(smoothness: np.ndarray | Deferred | None, n_points: i
         return resolved(smoothness)
     except SpectralError:  # its caller said so (OdometryPipeline.update_map)
         return np.full(n_points, np.nan)
+
+
+def thinned_rough(points_xyz: np.ndarray, keep: np.ndarray, nu: np.ndarray,
+                  cfg: RegistrationConfig) -> np.ndarray:
+    """`keep` with its rough points (smoothness below `map_anchor_smoothness`, no spectrum
+    counted rough) thinned to one per `rough_voxel_size_m` voxel; the smooth ones all kept."""
+    smooth = smoothness_from_nu(nu[keep], cfg.smooth_nu) >= cfg.map_anchor_smoothness
+    rough = keep[~smooth]
+    kept_rough = rough[voxel_downsample_indices(points_xyz[rough], cfg.rough_voxel_size_m)]
+    return np.sort(np.concatenate([keep[smooth], kept_rough]))
 
 
 def _map_smoothness(nu: np.ndarray | Deferred, index: np.ndarray,

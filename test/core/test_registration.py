@@ -21,6 +21,7 @@ from gft_odom.core.registration import (
     RegistrationConfig,
     ScanRegistration,
     scale_delta,
+    thinned_rough,
     transform_magnitude,
 )
 from gft_odom.errors import ConfigError, RegistrationError
@@ -916,6 +917,34 @@ def test_smoothest_voxel_priority_changes_which_points_register(static_pair):
         assert result.status == 'ok'
         used[priority] = result.T_world_sensor
     assert not np.allclose(used['first'], used['smoothest'], atol=1e-9)
+
+
+def test_rough_source_points_are_thinned_and_smooth_ones_kept():
+    # Four rough points (nu 0: canopy) in one 1 m voxel, two smooth ones (nu 0.4) beside them,
+    # one point without a spectrum (counted rough) in its own voxel.
+    points = np.array([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [0.5, 0.1, 0.1], [0.7, 0.1, 0.1],
+                       [0.2, 0.4, 0.1], [0.6, 0.4, 0.1], [5.1, 0.1, 0.1]])
+    nu = np.array([0.0, 0.0, 0.0, 0.0, 0.4, 0.4, np.nan])
+    keep = np.arange(7)
+    cfg = RegistrationConfig(rough_voxel_size_m=1.0)
+    np.testing.assert_array_equal(thinned_rough(points, keep, nu, cfg), [0, 4, 5, 6])
+    # Only the kept indices are read: a subset stays a subset.
+    np.testing.assert_array_equal(thinned_rough(points, keep[2:], nu, cfg), [2, 4, 5, 6])
+
+
+def test_thinned_rough_source_changes_the_match_only_with_frequencies(static_pair):
+    a, b, _ = static_pair
+    nu = np.random.default_rng(0).uniform(0.0, 0.5, len(b['points']))
+    poses, used = {}, {}
+    for size, with_nu in ((0.0, True), (1.2, True), (1.2, False)):
+        reg = registration(rough_voxel_size_m=size)
+        reg.register(a['points'], a['stamp_ns'])
+        result = reg.register(b['points'], b['stamp_ns'], nu=nu if with_nu else None)
+        assert result.status == 'ok'
+        poses[size, with_nu], used[size, with_nu] = result.T_world_sensor, result.n_points_used
+    assert used[1.2, True] < used[0.0, True] == used[1.2, False]
+    assert not np.allclose(poses[0.0, True], poses[1.2, True], atol=1e-9)
+    np.testing.assert_allclose(poses[1.2, False], poses[0.0, True], atol=1e-9)
 
 
 def test_a_voxel_keeps_the_point_seen_from_closest_when_asked():
