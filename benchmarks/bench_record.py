@@ -340,9 +340,10 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     for size in (0.25, 0.3, 0.35)) + tuple(
     # The noise floor of a screen: a source voxel 2.5 % off the default's moves every voxel
     # boundary and nothing else.
-    Entry(f'source voxel {size} m (noise floor)', 'default+gft',
+    Entry(f'source voxel {size} m (noise floor){label}', method,
           (('registration.voxel_size_m', size),))
-    for size in (0.39, 0.41))
+    for size in (0.39, 0.41)
+    for label, method in (('', 'default+gft'), (', no frequency (--no-filter)', 'default')))
 
 
 def main(argv=None) -> int:
