@@ -341,9 +341,11 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     # The noise floor of a screen: a source voxel 2.5 % off the default's moves every voxel
     # boundary and nothing else.
     Entry(f'source voxel {size} m (noise floor){label}', method,
-          (('registration.voxel_size_m', size),))
+          (('registration.voxel_size_m', size),) + extra)
     for size in (0.39, 0.41)
-    for label, method in (('', 'default+gft'), (', no frequency (--no-filter)', 'default')))
+    for label, method, extra in (
+        ('', 'default+gft', ()), (', no frequency (--no-filter)', 'default', ()),
+        (', shuffled frequency', 'default+gft', (('pipeline.shuffle_frequencies', True),))))
 
 
 def main(argv=None) -> int:
