@@ -207,6 +207,10 @@ ABLATION_ENTRIES = before_window_gate(before_deskew(ABLATION_ENTRIES) + (
           (('pipeline.shuffle_frequencies', True), ('pipeline.shuffle_seed', seed)))
     for seed in (1, 2))
 
+# A row as it is and with each scan's frequencies shuffled among its points (the control).
+_SHUFFLED = (('pipeline.shuffle_frequencies', True),)
+_AND_SHUFFLED = (('', ()), (', shuffled frequency', _SHUFFLED))
+
 # The drift study (docs/benchmarks.md): candidate changes to the default, run on the TRAINING
 # drives only; the held-out record then reports the one chosen against the old default.
 _DESKEW = ('registration.deskew', True)
@@ -326,16 +330,14 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     Entry(f'rough source voxel {size} m{label}', 'default+gft',
           (('registration.rough_voxel_size_m', size),) + extra)
     for size in (0.5, 0.6, 0.7, 0.8)
-    for label, extra in (('', ()), (', shuffled frequency',
-                                    (('pipeline.shuffle_frequencies', True),)))) + tuple(
+    for label, extra in _AND_SHUFFLED) + tuple(
     # ... with the smooth points denser than the default's 0.4 m source voxel; and the
     # source voxel alone, every point alike (the thinning's geometric control).
     Entry(f'source voxel 0.3 m, rough {size} m{label}', 'default+gft',
           (('registration.voxel_size_m', 0.3), ('registration.rough_voxel_size_m', size))
           + extra)
     for size in (0.4, 0.6)
-    for label, extra in (('', ()), (', shuffled frequency',
-                                    (('pipeline.shuffle_frequencies', True),)))) + tuple(
+    for label, extra in _AND_SHUFFLED) + tuple(
     Entry(f'source voxel {size} m', 'default+gft', (('registration.voxel_size_m', size),))
     for size in (0.25, 0.3, 0.35)) + tuple(
     # The noise floor of a screen: a source voxel 2.5 % off the default's moves every voxel
@@ -343,9 +345,9 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     Entry(f'source voxel {size} m (noise floor){label}', method,
           (('registration.voxel_size_m', size),) + extra)
     for size in (0.39, 0.41)
-    for label, method, extra in (
-        ('', 'default+gft', ()), (', no frequency (--no-filter)', 'default', ()),
-        (', shuffled frequency', 'default+gft', (('pipeline.shuffle_frequencies', True),))))
+    for label, method, extra in (('', 'default+gft', ()),
+                                 (', no frequency (--no-filter)', 'default', ()),
+                                 (', shuffled frequency', 'default+gft', _SHUFFLED)))
 
 
 def main(argv=None) -> int:
