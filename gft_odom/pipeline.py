@@ -33,6 +33,7 @@ from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transfor
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
+from gft_odom.core.spectral.lowpass import range_lowpass
 from gft_odom.core.spectral.sources import make_source
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
@@ -288,18 +289,21 @@ class OdometryPipeline:
         # that keeps every point leaves the frequencies to after the pose.
         kept, kept_freqs, after_pose = cropped, None, None
         if self.use_filter and len(cropped):
+            smoothed = self._range_lowpass(cropped)
             if freqs is None and self.frequencies_after_pose:
                 # The crop keeps only finite points, so the mask keeps them all.
                 after_pose = Deferred(partial(self._frequencies_after_pose, cropped))
                 kept_freqs = after_pose.then(_nu_and_band)
+                kept = smoothed
             else:
                 if freqs is None:
                     freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
                 keep = self._precomputed_keep(cropped, freqs)
                 if keep.all():  # all-pass: no copy of the scan
                     kept_freqs = Deferred.of((freqs.nu, freqs.band))
+                    kept = smoothed
                 else:
-                    kept = cropped.select(keep)
+                    kept = smoothed.select(keep)
                     kept_freqs = Deferred.of((freqs.nu[keep], freqs.band[keep]))
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
@@ -357,6 +361,18 @@ class OdometryPipeline:
         except Exception as exc:
             raise SpectralError(f'the frequencies of the scan at {cropped.stamp_ns} ns failed '
                                 f'after its pose: {exc!r}') from exc
+
+    def _range_lowpass(self, cropped: Scan) -> Scan:
+        """The scan with its ranges low-pass filtered on the scan-line graph
+        (`spectral.range_lowpass_alpha`; the scan itself when off or without rings). Its
+        frequencies are still those of the measured points."""
+        cfg = self.config.spectral
+        if cfg.range_lowpass_alpha <= 0.0 or cropped.ring is None:
+            return cropped
+        points = range_lowpass(cropped.points_xyz, cropped.ring, cfg.range_lowpass_alpha,
+                               cfg.tau_m, cfg.range_lowpass_sigma_m)
+        return Scan(cropped.stamp_ns, points, cropped.intensity, cropped.ring,
+                    cropped.time_offset_s, cropped.frame_id)
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control

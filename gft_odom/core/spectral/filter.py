@@ -107,6 +107,12 @@ class SpectralConfig:
     scan_line_slope_sigma: float = 2.0
     scan_line_max_gap_rad: float = 0.02
     scan_line_noise_m: float = 0.05
+    # A graph low-pass filter of every point's range before registration (lowpass.py):
+    # r' = (I + alpha L)^-1 r on the scan-line graph of Gaussian width range_lowpass_sigma_m
+    # (cut at tau_m). 0: off. Needs the `ring` field. Session 44, training drives: alpha 2-30,
+    # width 0.05-1 m, -1.4 to +7.4 % against the default, inside a screen's noise floor: off.
+    range_lowpass_alpha: float = 0.0
+    range_lowpass_sigma_m: float = 0.05
     n_bands: int = 10
     # Default all-pass: the tuned mask is chosen later by the band search.
     band_mask: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
@@ -167,7 +173,12 @@ class SpectralConfig:
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ConfigError(f'spectral.{name} must be a finite number > 0, got {value!r}')
 
+        if not (isinstance(self.range_lowpass_alpha, (int, float))
+                and np.isfinite(self.range_lowpass_alpha) and self.range_lowpass_alpha >= 0):
+            raise ConfigError(f'spectral.range_lowpass_alpha must be a finite number >= 0, '
+                              f'got {self.range_lowpass_alpha!r}')
         for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m',
+                     'range_lowpass_sigma_m',
                      'scan_line_slope_sigma', 'scan_line_max_gap_rad', 'scan_line_noise_m',
                      'local_map_keyframe_distance_m',
                      'local_map_voxel_m', 'local_map_max_distance_m'):
