@@ -347,6 +347,19 @@ STUDY_ENTRIES = before_window_gate(before_deskew((
     for size in (0.39, 0.41)
     for label, method, extra in (('', 'default+gft', ()),
                                  (', no frequency (--no-filter)', 'default', ()),
+                                 (', shuffled frequency', 'default+gft', _SHUFFLED))) + tuple(
+    # Session 44: the scan's range signal low-pass filtered on the scan-line graph before the
+    # match (the paper's idea applied to the signal, not to the choice of points).
+    Entry(f'range low-pass alpha {alpha}, sigma {sigma} m', 'default+gft',
+          (('spectral.range_lowpass_alpha', alpha), ('spectral.range_lowpass_sigma_m', sigma)))
+    for alpha, sigma in ((2.0, 0.1), (8.0, 0.1), (8.0, 0.3), (30.0, 0.05), (8.0, 1.0))) + tuple(
+    # Session 44: the noise floor again, the default's voxel size on another grid (its origin
+    # shifted half a voxel): the frequency, no frequency and the shuffled control.
+    Entry(f'source grid offset {offset} m{label}', method,
+          (('registration.voxel_grid_offset_m', offset),) + extra)
+    for offset in (0.2, 0.1)
+    for label, method, extra in (('', 'default+gft', ()),
+                                 (', no frequency (--no-filter)', 'default', ()),
                                  (', shuffled frequency', 'default+gft', _SHUFFLED)))
 
 

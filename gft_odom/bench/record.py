@@ -67,7 +67,10 @@ KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
                       ('registration', 'map_window_rough_view_deg'): 0.0,
                       ('registration', 'map_smooth_view_deg'): 180.0,
                       ('registration', 'plausible_from_refused'): False,
-                      ('registration', 'rough_voxel_size_m'): 0.0}
+                      ('registration', 'rough_voxel_size_m'): 0.0,
+                      ('spectral', 'range_lowpass_alpha'): 0.0,
+                      ('spectral', 'range_lowpass_sigma_m'): 0.05,
+                      ('registration', 'voxel_grid_offset_m'): 0.0}
 # The figure's log axis starts here: smaller errors are drawn at 1 mm.
 ERROR_FLOOR_M = 1e-3
 SCORING_NOTE = (

@@ -354,7 +354,9 @@ class ScanRegistration:
         # A deferred nu is computed here only for the options that read it before the pose.
         cfg, nu = self.config, sweep.nu
         priority = resolved(nu) if cfg.voxel_priority == 'smoothest' else None
-        sweep.keep = voxel_downsample_indices(sweep.points_xyz, cfg.voxel_size_m, priority)
+        on_grid = (sweep.points_xyz if cfg.voxel_grid_offset_m == 0.0
+                   else sweep.points_xyz + cfg.voxel_grid_offset_m)
+        sweep.keep = voxel_downsample_indices(on_grid, cfg.voxel_size_m, priority)
         if cfg.rough_voxel_size_m > 0.0 and nu is not None:
             sweep.keep = thinned_rough(sweep.points_xyz, sweep.keep, resolved(nu), cfg)
         sweep.source_xyz = sweep.points_xyz[sweep.keep]

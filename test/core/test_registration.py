@@ -947,6 +947,21 @@ def test_thinned_rough_source_changes_the_match_only_with_frequencies(static_pai
     np.testing.assert_allclose(poses[1.2, False], poses[0.0, True], atol=1e-9)
 
 
+def test_a_shifted_source_grid_keeps_other_points_and_still_matches(static_pair):
+    a, b, _ = static_pair
+    poses, used = {}, {}
+    for offset in (0.0, 0.2):
+        reg = registration(voxel_grid_offset_m=offset)
+        reg.register(a['points'], a['stamp_ns'])
+        result = reg.register(b['points'], b['stamp_ns'])
+        assert result.status == 'ok'
+        poses[offset], used[offset] = result.T_world_sensor, result.n_points_used
+    assert used[0.0] != used[0.2] or not np.allclose(poses[0.0], poses[0.2], atol=1e-9)
+    np.testing.assert_allclose(poses[0.2][:3, 3], poses[0.0][:3, 3], atol=0.02)
+    with pytest.raises(ConfigError, match='voxel_grid_offset_m'):
+        RegistrationConfig(voxel_grid_offset_m=0.4).validate()
+
+
 def test_a_voxel_keeps_the_point_seen_from_closest_when_asked():
     from gft_odom.core.local_map import LocalMap
     local_map = LocalMap(1.0, 100.0, 10_000, 5, 0.1, 0.2, 5, with_normals=False,
