@@ -20,7 +20,7 @@ import ctypes.util
 import logging
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -289,21 +289,19 @@ class OdometryPipeline:
         # that keeps every point leaves the frequencies to after the pose.
         kept, kept_freqs, after_pose = cropped, None, None
         if self.use_filter and len(cropped):
-            smoothed = self._range_lowpass(cropped)
+            kept = self._range_lowpass(cropped)
             if freqs is None and self.frequencies_after_pose:
                 # The crop keeps only finite points, so the mask keeps them all.
                 after_pose = Deferred(partial(self._frequencies_after_pose, cropped))
                 kept_freqs = after_pose.then(_nu_and_band)
-                kept = smoothed
             else:
                 if freqs is None:
                     freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
                 keep = self._precomputed_keep(cropped, freqs)
                 if keep.all():  # all-pass: no copy of the scan
                     kept_freqs = Deferred.of((freqs.nu, freqs.band))
-                    kept = smoothed
                 else:
-                    kept = smoothed.select(keep)
+                    kept = kept.select(keep)
                     kept_freqs = Deferred.of((freqs.nu[keep], freqs.band[keep]))
         t2 = time.perf_counter()
         # 3. Registration (falls back to the motion prediction when ICP cannot be trusted).
@@ -371,8 +369,7 @@ class OdometryPipeline:
             return cropped
         points = range_lowpass(cropped.points_xyz, cropped.ring, cfg.range_lowpass_alpha,
                                cfg.tau_m, cfg.range_lowpass_sigma_m)
-        return Scan(cropped.stamp_ns, points, cropped.intensity, cropped.ring,
-                    cropped.time_offset_s, cropped.frame_id)
+        return replace(cropped, points_xyz=points)
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control

@@ -28,12 +28,8 @@ def range_lowpass(points_xyz: np.ndarray, ring: np.ndarray, alpha: float, tau_m:
     """
     xyz = np.asarray(points_xyz, dtype=np.float64)
     out = xyz.copy()
-    n = xyz.shape[0]
-    if alpha <= 0.0 or n < 2:
-        return out
-    finite = np.isfinite(xyz).all(axis=1)
-    index = np.flatnonzero(finite)
-    if index.size < 2:
+    index = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    if alpha <= 0.0 or index.size < 2:
         return out
     coords = xyz[index]
     L, order = scan_line_graph(coords, np.asarray(ring)[index], tau_m, sigma_m)
