@@ -30,10 +30,11 @@ setup(
     ],
     extras_require={
         # kiss-icp: the peer the benchmarks measure against; evalio: six more LiDAR-only peers
-        # (gft_odom.bench.peers); ray: band search on a cluster.
+        # (gft_odom.bench.peers); genz-icp: GenZ-ICP with its own deskew (gft_odom.bench.genz);
+        # ray: band search on a cluster.
         'test': ['pytest', 'hypothesis', 'evo', 'ruff', 'kiss-icp>=1.3.0', 'evalio==0.6.1',
-                 'ray>=2.9'],
-        'peers': ['evalio==0.6.1'],
+                 'genz-icp==0.3.2', 'ray>=2.9'],
+        'peers': ['evalio==0.6.1', 'genz-icp==0.3.2'],
         'ray': ['ray>=2.9'],
     },
     zip_safe=True,

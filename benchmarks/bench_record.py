@@ -3,7 +3,7 @@
 Usage:
   .venv/bin/python benchmarks/bench_record.py
       [--drives held-out|training|new-held-out|edge|confirm|edge-confirm|edge-new|
-                edge-screen|edge-late|edge-slid]
+                edge-screen|edge-late|edge-slid|stress]
       [--jobs N]
       [--cache DIR]
       [--only LABEL ...] [--out benchmarks/results]
@@ -31,6 +31,7 @@ from gft_odom.bench.drives import (
     EDGE_SLID_DRIVES,
     HELD_OUT_DRIVES,
     NEW_HELD_OUT_DRIVES,
+    STRESS_DRIVES,
     TRAINING_DRIVES,
     default_cache_dir,
     ensure_drives,
@@ -44,7 +45,8 @@ DRIVE_SETS = {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
               'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
               'confirm': CONFIRM_DRIVES, 'edge-confirm': EDGE_CONFIRM_DRIVES,
               'edge-new': EDGE_NEW_DRIVES, 'edge-screen': EDGE_SCREEN_DRIVES,
-              'edge-late': EDGE_LATE_DRIVES, 'edge-slid': EDGE_SLID_DRIVES}
+              'edge-late': EDGE_LATE_DRIVES, 'edge-slid': EDGE_SLID_DRIVES,
+              'stress': STRESS_DRIVES}
 
 # Our package as users run it (config/filter_odom.yaml = the dataclass defaults), then peers.
 # The registration defaults before the map was re-anchored (a 60-keyframe map whose voxels
@@ -98,34 +100,15 @@ PREVIOUS_DEFAULTS = (('registration.map_keyframes', 60), ('registration.map_max_
 # Before issue 15: a 15-keyframe map.
 ORIGINAL_DEFAULTS = PREVIOUS_DEFAULTS[2:] + (('registration.map_keyframes', 15),
                                              ('registration.map_max_points', 40000))
-# Our rows first: the default (whose registration reads no frequency, so --no-filter and
-# shuffled frequencies give it the same poses: issue 20's ablation is ABLATION_ENTRIES) and
-# the same with deskew; then every LiDAR-only pipeline evalio 0.6.1 offers, kiss-icp both
-# through its Python API and through evalio.
+# The record: the package as users run it, then every LiDAR-only peer with its own defaults
+# (GenZ-ICP with its deskew and as it ships, deskew off), each stamped where its pose holds.
 ENTRIES = (
     Entry('gft_odom', 'default+gft'),
-    Entry('gft_odom, map served from any side (session 28 default)', 'default+gft',
-          NO_WINDOW_GATE),
-) + before_window_gate((
-    Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
-) + before_deskew((
-    Entry('gft_odom + deskew (velocity window 5)', 'default+gft',
-          (('registration.deskew', True),)),
-    Entry('gft_odom, map update in the background', 'default+gft',
-          (('registration.map_update', 'background'),)),
-    Entry('gft_odom without the any-side share (session 16 default)', 'default+gft',
-          NO_ANY_SIDE),
-    Entry('gft_odom with smooth anchors only (session 13 default)', 'default+gft', NO_VIEW_GATE),
-    Entry('gft_odom without turned guesses (session 6 default)', 'default+gft',
-          NO_TURN_GUESSES + NO_VIEW_GATE),
-    Entry('gft_odom without anchors (session 5 default)', 'default+gft',
-          NO_ANCHORS + NO_TURN_GUESSES),
-))) + (
     Entry('kiss-icp', 'kiss-icp'),
-    Entry('kiss-icp (evalio)', 'kiss-icp-evalio'),
     Entry('GenZ-ICP', 'genz-icp'),
-    Entry('MAD-ICP', 'mad-icp'),
+    Entry('GenZ-ICP, no deskew (as shipped)', 'genz-icp-no-deskew'),
     Entry('CT-ICP', 'ct-icp'),
+    Entry('MAD-ICP', 'mad-icp'),
     Entry('FORM', 'form'),
     Entry('LOAM', 'loam'),
 )

@@ -90,7 +90,7 @@ class Rejection:
 class FrameResult:
     """What one scan produced: poses, the filtered cloud, health and per-stage timings."""
 
-    stamp_ns: int
+    stamp_ns: int  # when the pose holds: the scan's stamp, or mid-sweep when not deskewed
     T_world_sensor: np.ndarray  # world = sensor frame at the first scan
     T_odom_base: np.ndarray  # REP 105 odom -> base_link
     covariance: np.ndarray  # (6, 6) of the pose, inflated when registration fell back
@@ -327,15 +327,18 @@ class OdometryPipeline:
         T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
         self.bounds_watch.observe(reg.status, reg.refused_speed_mps, reg.refused_rate_rps)
+        # The pose holds at the stamp when the sweep was deskewed to it, else mid-sweep.
+        pose_stamp_ns = int(scan.stamp_ns) + int(round(
+            self.registration.pose_time_offset_s(kept.time_offset_s) * NS_PER_S))
         if self.record_trajectory:
-            self._stamps_ns.append(int(scan.stamp_ns))
+            self._stamps_ns.append(pose_stamp_ns)
             self._poses.append(reg.T_world_sensor)
         timings_s = {'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
                      'pipeline': t4 - t0}
         self._left_after_pose = (after_pose, cropped,
                                  reg.T_world_sensor if observe else None, timings_s)
         return FrameResult(
-            stamp_ns=int(scan.stamp_ns), T_world_sensor=reg.T_world_sensor,
+            stamp_ns=pose_stamp_ns, T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
             n_points_in=len(scan), n_points_kept=len(kept), filtered=kept,
             frequencies=kept_freqs, twist=reg.twist, information=reg.information,

@@ -20,7 +20,7 @@ import numpy as np
 
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
-from gft_odom.core.metrics import TrajectoryEvaluator
+from gft_odom.core.metrics import TrajectoryEvaluator, stamp_audit
 from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
@@ -260,7 +260,21 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
         except GroundTruthError as exc:
             raise GroundTruthError(f'cannot evaluate against the ground truth: {exc}') from exc
         metrics['ground_truth_frame'] = 'gps_antenna' if replay.ground_truth_is_gps else 'sensor'
+        metrics.update(stamp_audit_metrics(estimate, replay.ground_truth, config))
     return metrics
+
+
+def stamp_audit_metrics(estimate: Trajectory, ground_truth: Trajectory,
+                        config: GftOdomConfig) -> dict:
+    """Where the poses hold: the stamp shift (ms) that scores best, and the ATE RMSE at each
+    shift (`core.metrics.stamp_audit`); None when too few poses overlap at every shift."""
+    try:
+        audit = stamp_audit(estimate, ground_truth, max_gap_s=config.evaluation.max_gap_s)
+    except GroundTruthError:
+        return {'stamp_best_shift_ms': None, 'stamp_audit': None}
+    return {'stamp_best_shift_ms': round(1e3 * audit.best_shift_s, 3),
+            'stamp_audit': {'shifts_ms': [round(1e3 * v, 3) for v in audit.shifts_s],
+                            'ate_rmse_m': [float(v) for v in audit.rmse_m]}}
 
 
 MAP_FILE = 'map.pcd'

@@ -15,6 +15,7 @@ METRIC_COLUMNS = {
     'end_error_m': ('end-point error [m]', '{:.3f}'),
     'paper_mse_m2': ('paper MSE [m^2]', '{:.4f}'),
     'rpe_drift_pct': ('RPE drift [%]', '{:.2f}'),
+    'stamp_best_shift_ms': ('best stamp shift [ms]', '{:+.0f}'),
     'latency_median_ms': ('latency median [ms]', '{:.1f}'),
     'latency_p95_ms': ('latency p95 [ms]', '{:.1f}'),
     'points_kept_fraction': ('points kept', '{:.1%}'),

@@ -49,8 +49,8 @@ ROSDEP_KEYS = {
     'hypothesis': 'python3-hypothesis', 'pytest': 'python3-pytest',
 }
 # No usable rosdep key: installed by pip (requirements.txt), or optional extras of the tools.
-# apsw: rosbags' sqlite; kiss_icp, evo, evalio: the benchmarks' peers and metrics.
-PIP_ONLY = {'open3d', 'rosbags', 'apsw', 'ray', 'kiss_icp', 'evo', 'evalio'}
+# apsw: rosbags' sqlite; kiss_icp, genz_icp, evo, evalio: the benchmarks' peers and metrics.
+PIP_ONLY = {'open3d', 'rosbags', 'apsw', 'ray', 'kiss_icp', 'genz_icp', 'evo', 'evalio'}
 ROS_PACKAGE_PREFIXES = ('rcl', 'rclpy', 'launch', 'ament_')
 
 

@@ -181,10 +181,14 @@ def test_pose_stamp_follows_the_pipelines_deskew():
     end_ns = scan.stamp_ns + int(round(float(np.max(time_s)) * 1e9))
     assert EvalioOdometry('kiss', {'deskew': True}, LAYOUT).register_frame(scan).stamp_ns \
         == end_ns
+    # A rigid fit of the whole sweep holds at its middle; CT-ICP reports its begin pose.
+    mid_ns = scan.stamp_ns + int(round(0.5 * float(np.min(time_s) + np.max(time_s)) * 1e9))
     for name in ('kiss', 'loam'):
         frame = EvalioOdometry(name, lidar=LAYOUT).register_frame(scan)
-        assert frame.stamp_ns == scan.stamp_ns
+        assert frame.stamp_ns == mid_ns
         np.testing.assert_allclose(frame.T_world_sensor, np.eye(4), atol=1e-9)  # first scan
+    begin_ns = scan.stamp_ns + int(round(float(np.min(time_s)) * 1e9))
+    assert EvalioOdometry('ct', lidar=LAYOUT).register_frame(scan).stamp_ns == begin_ns
 
 
 def test_no_estimate_returns_the_previous_pose():
@@ -224,7 +228,7 @@ def _displacement_ratio(stamps_ns, positions, gt):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('method', list(runner.PEER_METHODS))
+@pytest.mark.parametrize('method', list(runner.PEERS))
 def test_peer_tracks_the_tiny_drive(method, tiny_drive):
     run = runner.run_method(method, tiny_drive, GftOdomConfig())
     m = run.metrics
@@ -236,6 +240,21 @@ def test_peer_tracks_the_tiny_drive(method, tiny_drive):
     assert m['ate_rmse_m'] < 0.2, m['ate_rmse_m']
     # Identity-only poses (a pipeline fed garbage) would not move: the displacement must
     # match the ground truth's (measured 0.83 loam .. 1.02 form).
+    sensor = run.replay.sensor_trajectory
+    ratio = _displacement_ratio(sensor.stamps_ns, sensor.poses[:, :3, 3],
+                                read_ground_truth(tiny_drive.gt_path))
+    assert 0.7 < ratio < 1.3, ratio
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('method', list(runner.GENZ_CONFIGS))
+def test_genz_icp_tracks_the_tiny_drive(method, tiny_drive):
+    pytest.importorskip('genz_icp')
+    run = runner.run_method(method, tiny_drive, GftOdomConfig())
+    m = run.metrics
+    assert m['registration_mode'] == 'genz-icp'
+    assert m['pipeline_params'] == {'deskew': runner.GENZ_CONFIGS[method].deskew}
+    assert m['n_scans'] == 20 and m['ate_rmse_m'] < 0.2, m['ate_rmse_m']
     sensor = run.replay.sensor_trajectory
     ratio = _displacement_ratio(sensor.stamps_ns, sensor.poses[:, :3, 3],
                                 read_ground_truth(tiny_drive.gt_path))

@@ -28,11 +28,13 @@ from gft_odom.sim.writer import METADATA_FILE, bag_path_for, simulate_to_bag
 
 @dataclass(frozen=True)
 class Drive:
-    """One route of about `distance_m` in the varied orchard of `seed`."""
+    """One route of about `distance_m` in the orchard of `seed`, drawn from `family` ('varied',
+    or 'stress': outside every varied range, sim/variation.STRESS_RANGES)."""
 
     route: str
     seed: int
     distance_m: float
+    family: str = 'varied'
 
     @property
     def name(self) -> str:
@@ -72,6 +74,11 @@ EDGE_LATE_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (251, 
 # Seeds 261-264, added in session 28 and run with the slid-match rules only after they were
 # chosen on edge drives 221, 226, 242 and 243: edge routes no choice was made on.
 EDGE_SLID_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (261, 262, 263, 264))
+# Seeds 301-306: the stress family (other canopy models, row and tree spacings, mount heights,
+# speeds, wobble and ground outside every varied range), 1.56 km never used for a choice.
+STRESS_DRIVES = tuple(Drive(route, seed, 260.0, 'stress') for route, seed in (
+    ('lawnmower', 301), ('every_other_row', 302), ('spiral', 303), ('out_and_back', 304),
+    ('lawnmower', 305), ('every_other_row', 306)))
 
 
 def default_cache_dir() -> Path:
@@ -101,7 +108,7 @@ def _simulate(cache_dir: Path, drive: Drive, config: SimConfig) -> str:
     if partial.exists():
         shutil.rmtree(partial)
     simulate_to_bag(partial, drive.route, None, drive.seed, config, topdown_png=True,
-                    distance_m=drive.distance_m, vary=True)
+                    distance_m=drive.distance_m, vary=True, family=drive.family)
     # The bag's folder name does not depend on the parent, so one rename publishes it.
     partial.rename(folder)
     return drive.name

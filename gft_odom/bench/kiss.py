@@ -4,7 +4,9 @@ Only its Python API is used: `KissICP(KISSConfig).register_frame(points, timesta
 normalises the per-point timestamps itself ((t - min) / (max - min)) and deskews every point to
 the time of the LATEST point of the sweep, so its pose is the sensor pose at the sweep end; the
 scan's header stamp (velodyne driver, our simulator) is the sweep start. The pose is therefore
-stamped `stamp_ns + max(time)` so that the ground truth is matched at the right time.
+stamped `stamp_ns + max(time)` so that the ground truth is matched at the right time. Without
+deskew (or without per-point times) it fits the sweep as one rigid cloud, which holds at the
+sweep's middle: stamped there.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from gft_odom.config import PipelineConfig
-from gft_odom.core.constants import NS_PER_S
+from gft_odom.core.constants import NS_PER_S, SCAN_PERIOD_S
+from gft_odom.core.deskew import sweep_middle_offset_s
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError
 
@@ -112,8 +115,10 @@ class KissIcpOdometry:
                      and float(np.max(times)) > float(np.min(times)))
         timestamps = np.asarray(times, dtype=np.float64) if use_times else np.zeros(0)
         frame, _ = self.odometry.register_frame(points, timestamps)
-        # Deskewed to the latest point of the sweep: that is when this pose holds.
-        end_offset_ns = int(round(float(np.max(times)) * NS_PER_S)) if use_times else 0
-        return KissFrame(stamp_ns=int(scan.stamp_ns) + end_offset_ns,
+        # Deskewed to the latest point of the sweep: that is when this pose holds; a sweep
+        # fitted as one rigid cloud holds at its middle.
+        offset_s = (float(np.max(times)) if use_times
+                    else sweep_middle_offset_s(times, SCAN_PERIOD_S))
+        return KissFrame(stamp_ns=int(scan.stamp_ns) + int(round(offset_s * NS_PER_S)),
                          T_world_sensor=np.array(self.odometry.last_pose, dtype=float),
                          n_points_kept=int(len(frame)))

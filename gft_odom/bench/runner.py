@@ -21,6 +21,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from gft_odom.bench.genz import GenzIcpConfig, GenzIcpOdometry, genz_icp_version
 from gft_odom.bench.kiss import KissIcpConfig, KissIcpOdometry
 from gft_odom.bench.peers import PEERS, EvalioOdometry, LidarLayout, peer_metadata
 from gft_odom.config import GftOdomConfig, with_values
@@ -46,8 +47,15 @@ METHODS: dict[str, tuple[str, str | None, bool]] = {
 }
 # evalio's LiDAR-only pipelines, run like kiss-icp (no spectral filter). Not in METHODS, so the
 # default `gft-odom bench` stays the five methods; ask for them by name.
+# GenZ-ICP through its own pip package: with its deskew (the per-point times normalised as
+# it wants them), and as it ships (deskew off).
+GENZ_CONFIGS: dict[str, GenzIcpConfig] = {'genz-icp': GenzIcpConfig(),
+                                          'genz-icp-no-deskew': GenzIcpConfig(deskew=False)}
+GENZ_LABELS = {'genz-icp': 'GenZ-ICP (deskew)',
+               'genz-icp-no-deskew': 'GenZ-ICP (no deskew, as shipped)'}
 PEER_METHODS: dict[str, tuple[str, str | None, bool]] = {
-    name: (label, None, False) for name, (_, label) in PEERS.items()}
+    **{name: (label, None, False) for name, label in GENZ_LABELS.items()},
+    **{name: (label, None, False) for name, (_, label) in PEERS.items()}}
 ALL_METHODS: dict[str, tuple[str, str | None, bool]] = {**METHODS, **PEER_METHODS}
 # Peers on our simulator: its azimuth step varies (coarse for tests), so the column count of
 # the organised cloud is read off the first scan; rows, ranges and rate are the VLP-16's.
@@ -131,15 +139,16 @@ def _make_odometry(method: str, config: GftOdomConfig, kiss_config: KissIcpConfi
     """(step, update_map): a callable scan -> (stamp_ns, T_world_sensor, n_points_in,
     n_points_kept, status), or None for a scan the pipeline's acceptance rejected (as the
     node would); and the callable that does the map work left after the pose."""
-    if method in PEER_METHODS:
+    if method in PEERS:
         peer = EvalioOdometry(PEERS[method][0], lidar=PEER_LIDAR)
 
         def step(scan):
             frame = peer.register_frame(scan)
             return frame.stamp_ns, frame.T_world_sensor, len(scan), frame.n_points_kept, 'ok'
         return step, _no_map_update
-    if METHODS[method][1] is None:
-        kiss = KissIcpOdometry(kiss_config)
+    if method in GENZ_CONFIGS or METHODS[method][1] is None:
+        kiss = (GenzIcpOdometry(GENZ_CONFIGS[method]) if method in GENZ_CONFIGS
+                else KissIcpOdometry(kiss_config))
 
         def step(scan):
             frame = kiss.register_frame(scan)
@@ -215,8 +224,13 @@ def run_method(method: str, sequence: BenchSequence, base_config: GftOdomConfig,
     metrics['sequence'] = sequence.name
     metrics['scenario'] = sequence.scenario
     metrics['seed'] = sequence.seed
-    if method in PEER_METHODS:
+    if method in PEERS:
         metrics.update(peer_metadata(PEERS[method][0]), use_spectral_filter=False,
+                       band_mask=None, n_bands=None)
+    elif method in GENZ_CONFIGS:
+        genz = GENZ_CONFIGS[method]
+        metrics.update(registration_mode='genz-icp', pipeline_version=genz_icp_version(),
+                       pipeline_params={'deskew': genz.deskew}, use_spectral_filter=False,
                        band_mask=None, n_bands=None)
     elif METHODS[method][1] is None:
         metrics.update(registration_mode='kiss-icp', use_spectral_filter=False,

@@ -80,6 +80,20 @@ def azimuth_time_offsets(points_xyz: np.ndarray, scan_period_s: float,
     return offsets_s
 
 
+def sweep_middle_offset_s(time_offset_s: np.ndarray | None, scan_period_s: float,
+                          stamp_at_sweep_end: bool = False) -> float:
+    """The middle of a sweep's time span, in s from its stamp: where the pose of a sweep
+    registered as one rigid cloud (not deskewed) holds, since each half of the sweep pulls
+    the fit towards its own pose. Without per-point times the sweep spans one period from
+    the stamp (back from it with `stamp_at_sweep_end`)."""
+    if time_offset_s is not None:
+        offsets = np.asarray(time_offset_s, dtype=float)
+        offsets = offsets[np.isfinite(offsets)]
+        if offsets.size:
+            return 0.5 * (float(offsets.min()) + float(offsets.max()))
+    return -0.5 * scan_period_s if stamp_at_sweep_end else 0.5 * scan_period_s
+
+
 def twist_from_delta(T_prev_curr: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Angular (rad/s) and linear (m/s) velocity, in the sensor frame, of a per-scan delta."""
     if not dt_s > 0.0:

@@ -344,6 +344,74 @@ def ate(est: Trajectory, ref: Trajectory, mode: str = 'se3',
     return _ate_from_matched(m, mode)
 
 
+# --- stamp audit -----------------------------------------------------------------------------
+
+# The shifts the audit tries (-100..+100 ms in 5 ms steps) and how far from zero a correctly
+# stamped method's best shift may be.
+STAMP_AUDIT_SHIFTS_S = tuple(round(0.005 * k, 3) for k in range(-20, 21))
+STAMP_AUDIT_TOLERANCE_S = 0.010
+
+
+@dataclass(frozen=True)
+class StampAudit:
+    """Position ATE RMSE of one trajectory with its stamps shifted by each of `shifts_s`."""
+
+    shifts_s: np.ndarray
+    rmse_m: np.ndarray
+    n: int  # poses scored at every shift
+
+    @property
+    def best_shift_s(self) -> float:
+        """The shift that scores best: ~0 for a trajectory stamped where its poses hold."""
+        return float(self.shifts_s[int(np.argmin(self.rmse_m))])
+
+    @property
+    def best_rmse_m(self) -> float:
+        """The ATE RMSE at the best shift."""
+        return float(np.min(self.rmse_m))
+
+    @property
+    def rmse_at_zero_m(self) -> float:
+        """The ATE RMSE at the stamps as written."""
+        return float(self.rmse_m[int(np.argmin(np.abs(self.shifts_s)))])
+
+    def stamped_right(self, tolerance_s: float = STAMP_AUDIT_TOLERANCE_S) -> bool:
+        """Whether the best shift is within `tolerance_s` of zero."""
+        return abs(self.best_shift_s) <= tolerance_s + 1e-12
+
+
+def stamp_audit(est: Trajectory, ref: Trajectory, shifts_s=STAMP_AUDIT_SHIFTS_S,
+                max_gap_s: float = DEFAULT_MAX_GAP_S) -> StampAudit:
+    """Score `est` against `ref` with every stamp moved by each of `shifts_s`.
+
+    A pose stamped `delta` before the time it holds scores best at a shift of +`delta`: the
+    audit finds where a method's poses hold, whatever its adapter claims. Positions only
+    (rigid alignment, as `ate(mode='position')`), the reference interpolated at the shifted
+    stamps; only the poses matched at every shift count, so each shift scores the same poses.
+    """
+    _check_args(max_gap_s=max_gap_s)
+    _check_sorted(est, 'estimated')
+    shifts = np.asarray(shifts_s, dtype=float).reshape(-1)
+    if shifts.size == 0 or not np.isfinite(shifts).all():
+        raise ConfigError(f'stamp_audit needs finite shifts, got {list(shifts)}')
+    shifts_ns = np.round(shifts * NS_PER_S).astype(np.int64)
+    p_ref = np.stack([interpolate_positions(ref, est.stamps_ns + d, max_gap_s)
+                      for d in shifts_ns])  # (S, N, 3)
+    common = np.isfinite(p_ref).all(axis=(0, 2)) & np.isfinite(est.positions_xyz).all(axis=1)
+    if int(common.sum()) < _MIN_MATCHED:
+        raise GroundTruthError(
+            f'only {int(common.sum())} estimated stamps overlap the reference at every shift '
+            f'of {shifts.min():+.3f}..{shifts.max():+.3f} s. Estimate: {_time_range(est)}; '
+            f'reference: {_time_range(ref)}')
+    p_est = est.positions_xyz[common]
+    rmse = np.empty(shifts.size)
+    for k in range(shifts.size):  # one alignment per shift, vectorised over the poses
+        rotation, translation, _ = umeyama_alignment(p_est, p_ref[k, common])
+        errors = np.linalg.norm(p_est @ rotation.T + translation - p_ref[k, common], axis=1)
+        rmse[k] = float(np.sqrt(np.mean(errors ** 2)))
+    return StampAudit(shifts, rmse, int(common.sum()))
+
+
 def paper_mse(est: Trajectory, ref: Trajectory, max_diff_s: float = DEFAULT_MAX_DIFF_S,
               match: str = DEFAULT_MATCH, max_gap_s: float = DEFAULT_MAX_GAP_S) -> float:
     """The paper's "MSE": mean squared position error in m^2 after a rigid alignment.

@@ -57,7 +57,7 @@ import numpy as np
 import open3d as o3d
 
 from gft_odom.core.deferred import Deferred, resolved
-from gft_odom.core.deskew import azimuth_time_offsets, deskew_points
+from gft_odom.core.deskew import azimuth_time_offsets, deskew_points, sweep_middle_offset_s
 from gft_odom.core.geometry import along_beams, finite_rows, invert_transform, transform_points
 from gft_odom.core.icp_backend import RECOVERY_ITERATIONS_FACTOR as RECOVERY_ITERATIONS_FACTOR
 from gft_odom.core.icp_backend import IcpBackend
@@ -608,6 +608,15 @@ class ScanRegistration:
             elif nu is not None:
                 nu = nu[finite]
         return points, time_offset_s, nu
+
+    def pose_time_offset_s(self, time_offset_s: np.ndarray | None) -> float:
+        """Where in its sweep a scan's pose holds, in s after its stamp: the stamp when the
+        sweep is deskewed to it, else the middle of the sweep (a rigid fit of the whole
+        sweep: paper mode, deskew off)."""
+        if self.deskew:
+            return 0.0
+        return sweep_middle_offset_s(time_offset_s, self.config.scan_period_s,
+                                     self.config.azimuth_stamp_at_sweep_end)
 
     def _time_offsets(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None):
         if time_offset_s is not None:

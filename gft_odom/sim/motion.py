@@ -378,7 +378,9 @@ def _speed_profile(s: np.ndarray, curvature: np.ndarray, lane_of_sample: np.ndar
     stop durations)."""
     n_lanes = int(lane_of_sample.max()) + 1
     jitter = 1.0 + variation.lane_speed_jitter * rng.uniform(-1.0, 1.0, n_lanes)
-    cruise = np.clip(variation.cruise_speed_mps * jitter, MIN_CRUISE_MPS, MAX_SPEED_MPS)
+    # A stress drive's robot is faster than the Jackal: its own cruise speed is its cap.
+    cruise = np.clip(variation.cruise_speed_mps * jitter, MIN_CRUISE_MPS,
+                     max(MAX_SPEED_MPS, variation.cruise_speed_mps))
     speed = np.where(lane_of_sample >= 0, cruise[np.maximum(lane_of_sample, 0)], headland_mps)
     speed = np.minimum(speed, variation.max_yaw_rate_rps / np.maximum(curvature, 1e-9))
     n_stops = rng.poisson(variation.stops_per_100m * s[-1] / 100.0)

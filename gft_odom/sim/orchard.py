@@ -338,6 +338,12 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
         sway_amplitude=rng.uniform(0.5, 1.0, n_trees),
         sway_frequency_hz=rng.uniform(0.3, 0.9, (n_trees, 2)),
         sway_phase_rad=rng.uniform(0.0, 2.0 * np.pi, (n_trees, 2)))
+    canopy_index_of_tree = np.arange(n_trees)
+    if variation is not None and variation.canopy_model != 'ellipsoid':
+        # Its own random stream: the rest of the orchard is that of the same seed.
+        shape_rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xC4A0]))
+        canopies, canopy_index_of_tree = _shaped_canopies(
+            canopies, variation.canopy_model, tree_spacing, shape_rng)
 
     # Row-end posts (both ends of every row), vertical, slightly leaning.
     post_u = np.concatenate([np.full(n_rows, row_start_u - 2.0), np.full(n_rows, row_end_u + 2.0)])
@@ -397,4 +403,35 @@ def generate_orchard(seed: int, n_rows: int = 8, row_length_m: float = 60.0,
         row_start_u_m=row_start_u, row_end_u_m=row_end_u, row_spacing_m=float(row_spacing),
         tree_spacing_m=float(tree_spacing), ground=ground, cylinders=cylinders,
         canopies=canopies, boxes=boxes, trunk_index_of_tree=np.arange(n_trees),
-        canopy_index_of_tree=np.arange(n_trees))
+        canopy_index_of_tree=canopy_index_of_tree)
+
+
+# Lumpy crowns: each crown a cluster of this many lobes, each this share of its radii.
+LUMP_LOBES = 4
+LUMP_RADIUS_SHARE = (0.5, 0.75)
+# Hedgerow: a crown reaches this share of the tree spacing along the row either way, so
+# neighbouring crowns overlap into one wall.
+HEDGE_REACH = 0.65
+
+
+def _shaped_canopies(canopies: Canopies, model: str, tree_spacing_m: float,
+                     rng: np.random.Generator) -> tuple[Canopies, np.ndarray]:
+    """The crowns reshaped by `model` ('lumpy' or 'hedgerow'; sim/variation.CANOPY_MODELS),
+    and the first canopy of each tree. A lobe sways with its crown."""
+    n = len(canopies)
+    if model == 'hedgerow':
+        radii = canopies.radii_m.copy()
+        radii[:, 0] = np.maximum(radii[:, 0], HEDGE_REACH * tree_spacing_m)
+        return Canopies(canopies.centre_m, radii, canopies.sway_amplitude,
+                        canopies.sway_frequency_hz, canopies.sway_phase_rad), np.arange(n)
+    if model != 'lumpy':
+        raise SimulationError(f'unknown canopy model {model!r}')
+    parent = np.repeat(np.arange(n), LUMP_LOBES)
+    radii = canopies.radii_m[parent]
+    # Lobes scattered inside the crown: the cluster spans about the crown it replaces.
+    offset = rng.uniform(-0.45, 0.45, (parent.size, 3)) * radii
+    offset[:, 2] = np.abs(offset[:, 2])  # no lobe hangs below the crown's skirt
+    shares = rng.uniform(*LUMP_RADIUS_SHARE, (parent.size, 3))
+    return Canopies(canopies.centre_m[parent] + offset, radii * shares,
+                    canopies.sway_amplitude[parent], canopies.sway_frequency_hz[parent],
+                    canopies.sway_phase_rad[parent]), np.arange(n) * LUMP_LOBES

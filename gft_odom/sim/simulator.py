@@ -164,7 +164,7 @@ class ScanSimulator:
 
     @classmethod
     def for_drive(cls, config: SimConfig, scenario: str, seed: int, n_scans: int | None = None,
-                  distance_m: float = 300.0, vary: bool = False
+                  distance_m: float = 300.0, vary: bool = False, family: str = 'varied'
                   ) -> tuple['ScanSimulator', OrchardVariation | None]:
         """The simulator of one drive, and the variation it was drawn with (None: fixed).
 
@@ -173,10 +173,16 @@ class ScanSimulator:
         about `distance_m` of driving, the whole route unless `n_scans` cuts it short). `vary`
         draws orchard, terrain, driving, mount and wind from the seed (sim/variation.py); the
         edge route replaces the drawn speeds and turns with its own (motion.route_driving),
-        and the variation returned is what was driven.
+        and the variation returned is what was driven. `family` (with `vary`): 'varied', or
+        'stress' for drives outside every range of the varied family
+        (sim/variation.STRESS_RANGES).
         """
-        variation = route_driving(scenario, OrchardVariation.draw(seed)) if vary else None
+        variation = (route_driving(scenario, OrchardVariation.draw(seed, family)) if vary
+                     else None)
         if variation is not None:
+            if variation.lateral_wobble_m is not None:
+                config = replace(config, lateral_wobble_m=variation.lateral_wobble_m,
+                                 yaw_wobble_rad=variation.yaw_wobble_rad)
             config = replace(
                 config, speed_mps=variation.cruise_speed_mps,
                 canopy_mean_free_path_m=variation.canopy_mean_free_path_m,

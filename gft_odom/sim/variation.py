@@ -20,6 +20,8 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from gft_odom.errors import SimulationError
+
 # name -> (low, high): every per-seed draw is uniform in its range.
 VARIATION_RANGES: dict[str, tuple[float, float]] = {
     'row_spacing_m': (4.5, 7.5),
@@ -51,6 +53,45 @@ VARIATION_RANGES: dict[str, tuple[float, float]] = {
 MIN_CRUISE_MPS = 0.3
 MAX_SPEED_MPS = 2.0
 
+# The stress family: drives no choice was made on, each quantity drawn OUTSIDE the range above
+# (below or above it, either side at random where a range has two), and the canopy shaped by
+# another model: closer and wider rows, hedgerows whose crowns close the gap between trees,
+# denser and sparser foliage, the sensor mounted low or high, a faster robot, rougher ground,
+# stronger wind, a wobblier drive. name -> the intervals a draw picks one of, then uniform.
+STRESS_RANGES: dict[str, tuple[tuple[float, float], ...]] = {
+    'row_spacing_m': ((3.5, 4.5), (7.5, 9.0)),
+    'tree_spacing_m': ((1.5, 2.5), (5.5, 7.0)),
+    'row_length_m': ((40.0, 120.0),),
+    'missing_fraction': ((0.2, 0.35),),
+    'young_fraction': ((0.25, 0.5),),
+    'canopy_scale': ((0.45, 0.6), (1.2, 1.5)),
+    'canopy_mean_free_path_m': ((0.05, 0.15), (0.9, 2.0)),
+    'trunk_radius_scale': ((0.4, 0.7), (1.3, 1.8)),
+    'slope': ((0.08, 0.15),),
+    'undulation_std_m': ((0.4, 0.7),),
+    'bump_std_m': ((0.06, 0.12),),
+    'roughness_std_m': ((0.025, 0.05),),
+    'rut_depth_m': ((0.06, 0.12),),
+    'wind_amplitude_m': ((0.15, 0.35),),
+    'cruise_speed_mps': ((1.8, 2.4),),
+    'lane_speed_jitter': ((0.3, 0.5),),
+    'max_accel_mps2': ((1.0, 2.0),),
+    'stops_per_100m': ((1.5, 3.0),),
+    'stop_duration_s': ((1.0, 6.0),),
+    'max_yaw_rate_rps': ((1.2, 2.0),),
+    'turn_radius_m': ((0.05, 3.4),),
+    'mount_height_m': ((0.15, 0.25), (0.6, 1.0)),
+    'mount_roll_rad': ((-0.06, -0.03), (0.03, 0.06)),
+    'mount_pitch_rad': ((-0.12, -0.06), (0.06, 0.12)),
+    # The skid-steer wobble (SimConfig: 0.05 m and 0.02 rad in the varied family).
+    'lateral_wobble_m': ((0.1, 0.25),),
+    'yaw_wobble_rad': ((0.04, 0.1),),
+}
+# How a crown is shaped: one porous ellipsoid (the varied family); a cluster of smaller lobes
+# (lumpy, gaps between them); crowns stretched along the row until they meet (a hedgerow).
+CANOPY_MODELS = ('ellipsoid', 'lumpy', 'hedgerow')
+FAMILIES = ('varied', 'stress')
+
 
 @dataclass(frozen=True)
 class OrchardVariation:
@@ -81,10 +122,21 @@ class OrchardVariation:
     mount_roll_rad: float
     mount_pitch_rad: float
     seed: int = -1  # -1: not drawn (nominal)
+    # The stress family's own quantities; the varied family leaves them at these values.
+    family: str = 'varied'
+    canopy_model: str = 'ellipsoid'
+    lateral_wobble_m: float | None = None  # None: SimConfig's
+    yaw_wobble_rad: float | None = None
 
     @classmethod
-    def draw(cls, seed: int) -> 'OrchardVariation':
-        """Uniform draws within `VARIATION_RANGES`, deterministic per seed."""
+    def draw(cls, seed: int, family: str = 'varied') -> 'OrchardVariation':
+        """Uniform draws within `VARIATION_RANGES` (family 'varied') or outside them
+        (`STRESS_RANGES`, family 'stress'), deterministic per seed and family."""
+        if family == 'stress':
+            return cls._draw_stress(seed)
+        if family != 'varied':
+            raise SimulationError(f'unknown variation family {family!r}; choose from '
+                                  f'{FAMILIES}')
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A41A7]))
         values = {name: float(rng.uniform(lo, hi)) for name, (lo, hi) in
                   VARIATION_RANGES.items()}
@@ -92,6 +144,18 @@ class OrchardVariation:
         if rng.random() < 0.5:
             values['turn_radius_m'] = float(rng.uniform(0.05, 0.5))
         return cls(**values, seed=int(seed))
+
+    @classmethod
+    def _draw_stress(cls, seed: int) -> 'OrchardVariation':
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x57E55]))
+        values = {}
+        for name, intervals in STRESS_RANGES.items():
+            lo, hi = intervals[int(rng.integers(len(intervals)))]
+            values[name] = float(rng.uniform(lo, hi))
+        if rng.random() < 0.5:  # half the seeds pivot, as in the varied family
+            values['turn_radius_m'] = float(rng.uniform(0.05, 0.5))
+        model = CANOPY_MODELS[int(rng.integers(len(CANOPY_MODELS)))]
+        return cls(**values, seed=int(seed), family='stress', canopy_model=model)
 
     @classmethod
     def nominal(cls) -> 'OrchardVariation':

@@ -78,14 +78,16 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
                     seed: int = 0, config: SimConfig | None = None, fmt: str = 'ros2',
                     storage: str = 'sqlite3', topdown_png: bool = True,
                     progress: Callable[[int], None] | None = None,
-                    distance_m: float = 300.0, vary: bool = False) -> SimulationResult:
+                    distance_m: float = 300.0, vary: bool = False,
+                    family: str = 'varied') -> SimulationResult:
     """Simulate `n_scans` sweeps of `scenario` in the orchard of `seed`; write the dataset.
 
     Routes (lawnmower, every_other_row, spiral, out_and_back, edge_lawnmower) drive about
     `distance_m`; `n_scans=None` simulates the whole route. `vary` draws the orchard, terrain,
     driving, mount and wind from the seed; the draws go into `sim_metadata.json` beside the
     bag and into the bag (rosbag2 custom_data, a ROS 1 bag a std_msgs/String on
-    `METADATA_TOPIC`). `progress(k)` is called after each scan with the number of scans done.
+    `METADATA_TOPIC`); `family` 'stress' draws them outside the varied ranges. `progress(k)`
+    is called after each scan with the number of scans done.
     Nothing already written is overwritten: an existing bag raises SimulationError.
     """
     from gft_odom.io.bags import BagWriter
@@ -112,7 +114,8 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
     gt_dir = out_dir / 'ground_truth'
     gt_dir.mkdir(parents=True, exist_ok=True)
 
-    sim, variation = ScanSimulator.for_drive(config, scenario, seed, n_scans, distance_m, vary)
+    sim, variation = ScanSimulator.for_drive(config, scenario, seed, n_scans, distance_m, vary,
+                                             family)
     config = sim.config
     period_s = 1.0 / config.scan_rate_hz
     if n_scans is None:  # the whole route

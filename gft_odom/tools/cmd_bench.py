@@ -210,7 +210,8 @@ def _write_and_print(args: argparse.Namespace, bench, document: dict) -> None:
 
 def _evalio_version(methods) -> str:
     """evalio's version when a peer runs, else 'not run'."""
-    if not any(m in PEER_METHODS for m in methods):
+    from gft_odom.bench.peers import PEERS
+    if not any(m in PEERS for m in methods):
         return 'not run'
     from gft_odom.bench.peers import evalio_version
     return evalio_version()

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import logging
 
+from gft_odom.errors import ConfigError
 from gft_odom.sim.motion import ROUTES, SCENARIOS
 from gft_odom.sim.simulator import ScanSimulator, SimConfig
 from gft_odom.sim.writer import simulate_to_bag
@@ -36,6 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--vary', action='store_true',
                    help='draw orchard, terrain, speeds, turns, mount and wind from the seed '
                         '(ranges in docs/benchmarks.md); recorded in sim_metadata.json')
+    p.add_argument('--stress', action='store_true',
+                   help='with --vary: the stress family, every quantity drawn outside the '
+                        'varied ranges (other canopy models, spacings, mount, speed, wobble)')
     p.add_argument('--seed', type=int, default=0, help='orchard and noise seed')
     p.add_argument('--out', required=True, help='output directory')
     p.add_argument('--format', choices=('ros2', 'ros1'), default='ros2', dest='fmt',
@@ -56,19 +60,24 @@ def run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(SimConfig(), motion_distortion=not args.no_distortion,
                                  legacy_fields=args.legacy_fields,
                                  azimuth_step_deg=args.azimuth_step_deg)
+    if args.stress and not args.vary:
+        raise ConfigError('--stress draws a variation: give --vary with it')
+    family = 'stress' if args.stress else 'varied'
     scans = args.scans
     if scans is None and args.scenario not in ROUTES:
         scans = 300
     total = scans
     if scans is None:  # the whole route: its length is known once it is planned (cheap)
         total = ScanSimulator.for_drive(config, args.scenario, args.seed, None,
-                                        args.distance_m, args.vary)[0].n_scans_in_drive
+                                        args.distance_m, args.vary,
+                                        family)[0].n_scans_in_drive
     # The bar shows on a terminal only: `simulate ... > log 2>&1` writes no bar into the log.
     with progress_bar(total, f'simulate {args.scenario}', enabled=not args.quiet) as update:
         result = simulate_to_bag(args.out, args.scenario, scans, args.seed, config,
                                  fmt=args.fmt, topdown_png=not args.no_png,
                                  progress=lambda done: update(done),
-                                 distance_m=args.distance_m, vary=args.vary)
+                                 distance_m=args.distance_m, vary=args.vary,
+                                 family=family)
     print(f'bag:          {result.bag_path}')
     print(f'ground truth: {result.gt_csv_path}')
     print(f'sensor poses: {result.gt_tum_path}')

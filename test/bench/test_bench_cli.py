@@ -108,6 +108,7 @@ def test_default_bench_methods_stay_the_five():
     assert list(METHODS) == ['paper', 'paper+gft', 'default', 'default+gft', 'kiss-icp']
     assert not set(PEER_METHODS) & set(METHODS)
     assert list(ALL_METHODS) == list(METHODS) + list(PEER_METHODS)
+    assert {'genz-icp', 'genz-icp-no-deskew', 'ct-icp'} <= set(PEER_METHODS)
     args = build_parser('bench').parse_args(['bench'])
     assert args.methods == list(METHODS)
     assert build_parser('bench').parse_args(['bench', '--methods', 'loam']).methods == ['loam']
