@@ -52,5 +52,6 @@ def markdown_table(rows, cols: tuple[tuple[str, str, str], ...], first_title: st
 def accuracy_line(metrics: dict) -> str:
     """One line of the accuracy figures of a run, e.g. for a command's printed summary."""
     parts = [f'{METRIC_COLUMNS[key][0]} {cell(metrics.get(key), METRIC_COLUMNS[key][1])}'
-             for key in ('ate_rmse_m', 'ate_mean_m', 'end_error_m', 'rpe_drift_pct')]
+             for key in ('ate_rmse_m', 'ate_mean_m', 'end_error_m', 'rpe_drift_pct',
+                         'stamp_best_shift_ms')]
     return ', '.join(parts)

@@ -30,6 +30,7 @@ from gft_odom.bench.runner import (
 )
 from gft_odom.config import GftOdomConfig, with_values
 from gft_odom.core.metrics import STAMP_AUDIT_TOLERANCE_S, ate
+from gft_odom.core.trajectory import Trajectory
 from gft_odom.io.atomic import write_text_atomic
 from gft_odom.io.ground_truth import read_ground_truth
 from gft_odom.replay import estimate_for_ground_truth
@@ -139,18 +140,31 @@ def _error_curve(run: MethodRun) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
-              ) -> tuple[dict, tuple[np.ndarray, np.ndarray]]:
-    """One entry on one drive: its flat metrics (plus KITTI drift) and error curve."""
+              ) -> tuple[dict, tuple[np.ndarray, np.ndarray], Trajectory]:
+    """One entry on one drive: its flat metrics (plus KITTI drift), error curve and sensor
+    trajectory (each pose stamped where it holds)."""
     run = run_method(entry.method, sequence, entry.config(base),
                      ground_truth=read_ground_truth(sequence.gt_path))
     metrics = dict(run.metrics)
     metrics['label'] = entry.label
     metrics['kitti_drift_pct'] = kitti_drift_pct(metrics)
     metrics['rpe_10m_pct'] = metrics.get(f'rpe_drift_pct_{RPE_SHORT_M:g}m')
-    return metrics, _error_curve(run)
+    return metrics, _error_curve(run), run.replay.sensor_trajectory
 
 
-def _pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
+def cached_trajectory(cache_dir: Path, entry: Entry, sequence: BenchSequence,
+                      base: GftOdomConfig | None = None) -> Trajectory | None:
+    """The sensor trajectory a record run kept for (entry, drive); None when not kept."""
+    path = pair_file(cache_dir, entry, sequence, base or GftOdomConfig())
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        if 'stamps_ns' not in data:
+            return None
+        return Trajectory(data['stamps_ns'], data['poses'])
+
+
+def pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
                base: GftOdomConfig) -> Path:
     """Where one (entry, drive) result is kept: named by label, method, drive and the whole
     config the method runs with, so a changed default is measured again, not reused. (A code
@@ -187,19 +201,19 @@ def _with_end_error(metrics: dict, curve: tuple[np.ndarray, np.ndarray]) -> dict
 def _run_entry_job(args):
     entry, sequence, base, cache_dir, cached_only = args
     if cache_dir is not None:
-        path = _pair_file(cache_dir, entry, sequence, base)
+        path = pair_file(cache_dir, entry, sequence, base)
         if path.is_file():  # measured before: reuse (a resumed or extended record)
             with np.load(path) as data:
                 curve = (data['distance'], data['error'])
                 return _with_end_error(json.loads(str(data['metrics'])), curve), curve
     if cached_only:
         return None
-    metrics, curve = run_entry(entry, sequence, base)
+    metrics, curve, trajectory = run_entry(entry, sequence, base)
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix('.partial.npz')
         np.savez(tmp, metrics=json.dumps(metrics, default=str), distance=curve[0],
-                 error=curve[1])
+                 error=curve[1], stamps_ns=trajectory.stamps_ns, poses=trajectory.poses)
         tmp.replace(path)
     return metrics, curve
 

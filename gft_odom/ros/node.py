@@ -419,7 +419,10 @@ class FilterOdomNode(Node):
             if nu is not None:
                 columns['frequency'] = nu.astype(np.float32)
                 columns['band'] = result.band.astype(np.uint8)
-            self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), stamp_ns, header.frame_id))
+            # The cloud keeps its sweep's stamp (the driver's); the pose is stamped where it
+            # holds (mid-sweep when the sweep was not deskewed).
+            self.cloud_pub.publish(blob_to_msg(encode_cloud(columns), int(scan.stamp_ns),
+                                               header.frame_id))
         return odometry_out_s
 
     def _publish_path(self) -> None:

@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 
 RESEND_AFTER_S = 2.0
 MIN_SEND_INTERVAL_S = SCAN_PERIOD_S  # a VLP-16 sweep period
+# A sweep's pose holds within one period after its stamp.
+SWEEP_SPAN_NS = int(SCAN_PERIOD_S * 1e9)
 
 
 class NodeProcessError(GftOdomError):
@@ -187,8 +189,17 @@ class _Feeder:
         # moment, or the first odometry can go out before our subscription is matched.
         self.spin_until(lambda: False, 2.0)
 
-    def send(self, msg, scan_timeout_s: float) -> bool:
-        """Publish the clock and the cloud, again until its odometry comes back."""
+    def answer_to(self, stamp_ns: int) -> int | None:
+        """The stamp of the odometry answering the sweep stamped `stamp_ns`: the node stamps a
+        pose where it holds, within the sweep (at its stamp, or mid-sweep when it was not
+        deskewed); None before it came."""
+        if stamp_ns in self.odometry:
+            return stamp_ns
+        return next((k for k in self.odometry if 0 < k - stamp_ns < SWEEP_SPAN_NS), None)
+
+    def send(self, msg, scan_timeout_s: float) -> int | None:
+        """Publish the clock and the cloud, again until its odometry comes back: the
+        odometry's stamp, None when none came."""
         stamp_ns = stamp_to_ns(msg.header.stamp)
         # Never faster than the sensor: back-to-back 0.5 MB best-effort clouds were seen to
         # be lost whole on this machine (every resend of the same scan).
@@ -200,8 +211,9 @@ class _Feeder:
         while not got and time.monotonic() < deadline:
             self.cloud_pub.publish(msg)
             self.last_sent_s = time.monotonic()
-            got = self.spin_until(lambda: stamp_ns in self.odometry, RESEND_AFTER_S)
-        return got
+            got = self.spin_until(lambda: self.answer_to(stamp_ns) is not None,
+                                  RESEND_AFTER_S)
+        return self.answer_to(stamp_ns)
 
     def save_map(self, timeout_s: float = 30.0) -> str:
         """Call the node's ~/save_map; its answer (where the files went)."""
@@ -240,7 +252,7 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         exe, config, topic, dict(os.environ if env is None else env), log_path, save_map_dir)
     saved = None
     feeder = _Feeder(proc, node_log, domain_id, topic)
-    stamps, latency, points_in, statuses = [], [], [], []
+    stamps, scan_stamps, latency, points_in, statuses = [], [], [], [], []
     failed = True
     try:
         feeder.wait_for_node()
@@ -251,11 +263,12 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                     break
                 msg = ros_message_from_bag(raw)
                 t0 = time.perf_counter()
-                got = feeder.send(msg, scan_timeout_s)
+                pose_stamp_ns = feeder.send(msg, scan_timeout_s)
                 latency.append(time.perf_counter() - t0)
-                if got:
+                if pose_stamp_ns is not None:
                     points_in.append(msg.width * msg.height)
-                    stamps.append(stamp_to_ns(msg.header.stamp))
+                    stamps.append(pose_stamp_ns)
+                    scan_stamps.append(stamp_to_ns(msg.header.stamp))
                     statuses.append('ok')
                 else:
                     log.warning('no odometry for the scan at %d ns within %.0f s (the node '
@@ -281,15 +294,15 @@ def replay_through_node(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     if not stamps:
         raise NodeProcessError(f'filter_odom_node answered none of the {len(statuses)} scans '
                                f'sent; its log: {node_log}')
-    replay = _replay_result(config, feeder, stamps, latency, points_in, statuses, skipped,
-                            ground_truth, gt_path, node_log if log_path else None)
+    replay = _replay_result(config, feeder, stamps, scan_stamps, latency, points_in, statuses,
+                            skipped, ground_truth, gt_path, node_log if log_path else None)
     if saved is not None:
         replay.metrics['saved_map'] = saved
     return replay
 
 
-def _replay_result(config, feeder: _Feeder, stamps, latency, points_in, statuses, skipped,
-                   ground_truth, gt_path, node_log) -> ReplayResult:
+def _replay_result(config, feeder: _Feeder, stamps, scan_stamps, latency, points_in, statuses,
+                   skipped, ground_truth, gt_path, node_log) -> ReplayResult:
     """The ReplayResult (and its metrics) of what the node answered."""
     base_poses = np.array([feeder.odometry[s] for s in stamps]).reshape(-1, 4, 4)
     base = Trajectory(np.array(stamps, dtype=np.int64), base_poses)
@@ -299,7 +312,7 @@ def _replay_result(config, feeder: _Feeder, stamps, latency, points_in, statuses
         sensor_trajectory=sensor, base_trajectory=base, latency_s=np.asarray(latency),
         stage_s={'round_trip': np.asarray(latency)}, points_in=np.asarray(points_in),
         # Best-effort like every sensor stream: a lost filtered cloud counts as -1.
-        points_kept=np.array([feeder.kept_points.get(s, -1) for s in stamps]),
+        points_kept=np.array([feeder.kept_points.get(s, -1) for s in scan_stamps]),
         statuses=statuses, skipped_messages=skipped, ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
     replay.metrics = summarize(replay, config)

@@ -33,6 +33,7 @@ from gft_odom.bench.record import (
 )
 from gft_odom.bench.runner import BenchSequence
 from gft_odom.config import GftOdomConfig
+from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import ConfigError
 from gft_odom.sim.simulator import SimConfig
 from gft_odom.sim.writer import simulate_to_bag
@@ -154,10 +155,22 @@ def measured_labels(monkeypatch) -> list[str]:
 
     def fake_run_entry(entry, sequence, base):
         calls.append(entry.label)
-        return {'label': entry.label, 'ate_rmse_m': 0.5}, (np.zeros(2), np.ones(2))
+        trajectory = Trajectory(np.array([0, 1]), np.tile(np.eye(4), (2, 1, 1)))
+        return {'label': entry.label, 'ate_rmse_m': 0.5}, (np.zeros(2), np.ones(2)), trajectory
 
     monkeypatch.setattr(record_module, 'run_entry', fake_run_entry)
     return calls
+
+
+def test_a_run_keeps_its_trajectory_for_later_study(tmp_path, measured_labels):
+    from gft_odom.bench.record import cached_trajectory
+    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
+    entry = Entry('a', 'default+gft')
+    assert cached_trajectory(tmp_path / 'cache', entry, sequence) is None
+    run_record([entry], [sequence], cache_dir=tmp_path / 'cache')
+    kept = cached_trajectory(tmp_path / 'cache', entry, sequence)
+    np.testing.assert_array_equal(kept.stamps_ns, [0, 1])
+    assert kept.poses.shape == (2, 4, 4)
 
 
 def test_cached_only_reports_what_was_measured_and_nothing_else(tmp_path, measured_labels):

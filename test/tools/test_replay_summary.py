@@ -34,3 +34,6 @@ def test_replay_writes_and_prints_mean_and_end_point_error(tmp_path, capsys):
     assert line in printed.splitlines()
     assert f'ATE mean [m] {metrics["ate_mean_m"]:.3f}' in line
     assert f'end-point error [m] {metrics["end_error_m"]:.3f}' in line
+    # Where the poses hold: the stamp shift that scores best, printed beside the errors.
+    assert f'best stamp shift [ms] {metrics["stamp_best_shift_ms"]:+.0f}' in line
+    assert len(metrics['stamp_audit']['shifts_ms']) == len(metrics['stamp_audit']['ate_rmse_m'])
