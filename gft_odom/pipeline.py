@@ -20,7 +20,7 @@ import ctypes.util
 import logging
 import time
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -33,8 +33,6 @@ from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transfor
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
-from gft_odom.core.spectral.lowpass import range_lowpass
-from gft_odom.core.spectral.sources import make_source
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError, SpectralError
@@ -62,7 +60,6 @@ TRIM_AFTER_POINTS = 500_000
 TRIMS_AFTER_A_LARGE_SCAN = 20
 # A scan whose work began this long after the work before it ended did not wait behind it
 # (the node's callback, or a caller's decoding, takes a few ms in between).
-IDLE_BEFORE_A_SCAN_S = 0.01
 
 
 def _malloc_trim():
@@ -99,7 +96,7 @@ class FrameResult:
     n_points_kept: int
     filtered: Scan  # the points registration used
     # (nu, band) per kept point, None when the filter is off; computed after the pose when
-    # nothing needs them before it (`pipeline.frequencies_after_pose`), at the first read.
+    # nothing needs them before it (`frequencies_after_pose`), at the first read.
     frequencies: Deferred | None
     timings_s: dict[str, float] = field(default_factory=dict)
     rejection: Rejection | None = None  # set when the scan was not registered
@@ -167,7 +164,6 @@ class OdometryPipeline:
         self.config = config
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
-        self.frequency_source = make_source(self.spectral_filter)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
         # Says once when the motion bounds keep refusing matches that agree (a fast platform).
@@ -181,13 +177,9 @@ class OdometryPipeline:
         self._last_accepted_ns: int | None = None
         self._jump_candidate_ns: int | None = None  # a stamp jump waiting for confirmation
         self._trims_pending = 0
-        # What the last scan left for `update_map`: (its deferred frequencies or None, the
-        # cropped scan, the pose the frequency source observes or None, its timings).
+        # What the last scan left for `update_map`: (its deferred frequencies or None, its
+        # timings).
         self._left_after_pose: tuple | None = None
-        # When the last scan arrived, as far as the pipeline can tell (`_note_arrival`):
-        # (perf_counter seconds, its stamp in ns), None before the first.
-        self._arrival: tuple[float, int] | None = None
-        self._work_ended_s = -np.inf  # when the last scan's work (and its map's) ended
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -195,7 +187,6 @@ class OdometryPipeline:
         empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
         self.update_map()  # the last scan's work, in the run it belongs to
         self.registration.reset()
-        self.frequency_source.reset()  # a local-map source holds keyframes of the old run
         self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
@@ -270,9 +261,8 @@ class OdometryPipeline:
         """One scan through acceptance, crop, filter, registration. `freqs`: frequencies of the
         cropped scan computed earlier (the band search re-filters them with many masks).
         A rejected scan gives a result with status 'rejected_<reason>' and the last pose."""
-        self.update_map(next_scan_due_s=time.perf_counter())  # the previous scan's, late
+        self.update_map()  # the previous scan's, late
         t0 = time.perf_counter()
-        self._note_arrival(t0, int(scan.stamp_ns))
         if self._trims_pending:
             release_free_memory()
             self._trims_pending -= 1
@@ -289,14 +279,13 @@ class OdometryPipeline:
         # that keeps every point leaves the frequencies to after the pose.
         kept, kept_freqs, after_pose = cropped, None, None
         if self.use_filter and len(cropped):
-            kept = self._range_lowpass(cropped)
             if freqs is None and self.frequencies_after_pose:
                 # The crop keeps only finite points, so the mask keeps them all.
                 after_pose = Deferred(partial(self._frequencies_after_pose, cropped))
                 kept_freqs = after_pose.then(_nu_and_band)
             else:
                 if freqs is None:
-                    freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+                    freqs = self.spectral_filter.scan_frequencies(cropped, self.band_mask.n_bands)
                 keep = self._precomputed_keep(cropped, freqs)
                 if keep.all():  # all-pass: no copy of the scan
                     kept_freqs = Deferred.of((freqs.nu, freqs.band))
@@ -318,12 +307,7 @@ class OdometryPipeline:
                                              nu=nu if after_pose else resolved(nu),
                                              defer_map_update=True)
         t3 = time.perf_counter()
-        # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map
-        # (after the frequencies: in `update_map` when they come after the pose).
-        observe = self.use_filter and not reg.status.startswith('fallback')
-        if observe and after_pose is None:
-            self.frequency_source.observe(cropped, reg.T_world_sensor)
-        t4 = time.perf_counter()  # a local-map source's keyframe update is filter time
+        # 4. Update: odom -> base_link, trajectory, counters.
         T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
         self.bounds_watch.observe(reg.status, reg.refused_speed_mps, reg.refused_rate_rps)
@@ -333,10 +317,9 @@ class OdometryPipeline:
         if self.record_trajectory:
             self._stamps_ns.append(pose_stamp_ns)
             self._poses.append(reg.T_world_sensor)
-        timings_s = {'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
-                     'pipeline': t4 - t0}
-        self._left_after_pose = (after_pose, cropped,
-                                 reg.T_world_sensor if observe else None, timings_s)
+        timings_s = {'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
+                     'pipeline': time.perf_counter() - t0}
+        self._left_after_pose = (after_pose, timings_s)
         return FrameResult(
             stamp_ns=pose_stamp_ns, T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
@@ -346,33 +329,19 @@ class OdometryPipeline:
 
     @property
     def frequencies_after_pose(self) -> bool:
-        """Whether a scan's frequencies are computed after its pose
-        (`pipeline.frequencies_after_pose`, a mask that keeps every point whatever its
-        frequency, and no registration option that reads them in the match: the pose does
-        not need them)."""
-        return (self.config.pipeline.frequencies_after_pose
-                and self.spectral_filter.keeps_every_finite_point(self.band_mask)
-                and not self.config.registration.reads_scan_frequencies_before_pose)
+        """Whether a scan's frequencies are computed after its pose: the mask keeps every
+        point whatever its frequency, so the pose does not need them (the registration reads
+        them only for its next keyframe's map)."""
+        return self.spectral_filter.keeps_every_finite_point(self.band_mask)
 
     def _frequencies_after_pose(self, cropped: Scan) -> PointFrequencies:
         """The frequencies of a scan whose pose is out: whatever fails in them is a
         SpectralError, which costs the scan its frequencies, nothing else."""
         try:
-            return self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+            return self.spectral_filter.scan_frequencies(cropped, self.band_mask.n_bands)
         except Exception as exc:
             raise SpectralError(f'the frequencies of the scan at {cropped.stamp_ns} ns failed '
                                 f'after its pose: {exc!r}') from exc
-
-    def _range_lowpass(self, cropped: Scan) -> Scan:
-        """The scan with its ranges low-pass filtered on the scan-line graph
-        (`spectral.range_lowpass_alpha`; the scan itself when off or without rings). Its
-        frequencies are still those of the measured points."""
-        cfg = self.config.spectral
-        if cfg.range_lowpass_alpha <= 0.0 or cropped.ring is None:
-            return cropped
-        points = range_lowpass(cropped.points_xyz, cropped.ring, cfg.range_lowpass_alpha,
-                               cfg.tau_m, cfg.range_lowpass_sigma_m)
-        return replace(cropped, points_xyz=points)
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control
@@ -425,16 +394,13 @@ class OdometryPipeline:
         if config.registration != self.config.registration:
             raise ConfigError('registration parameters can only change before the first scan')
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
-        self.frequency_source = make_source(self.spectral_filter)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 
-    def update_map(self, next_scan_due_s: float | None = None) -> float:
+    def update_map(self) -> float:
         """The work the last `register_frame` left after its pose: its frequencies (when
         they come after the pose, and nobody read them yet) and a keyframe's map rebuild
-        (its normals and KD-tree); the seconds it took. `next_scan_due_s`
-        (`time.perf_counter` seconds; default: one scan period after the last scan arrived,
-        `_note_arrival`): what map_normals 'in_time' fits its normals before.
+        (its normals and search index); the seconds it took.
 
         `register_frame` returns the pose first, so that a caller can publish it and then
         call this; the next `register_frame` does it when the caller did not. Either way
@@ -442,35 +408,15 @@ class OdometryPipeline:
         wherever they were computed) and 'map_update'."""
         t0 = time.perf_counter()
         left, self._left_after_pose = self._left_after_pose, None
-        after_pose, cropped, T_observed, timings_s = left or (None, None, None, {})
+        after_pose, timings_s = left or (None, {})
         if after_pose is not None:
-            observe_s = 0.0
             try:
-                after_pose.get()  # the keyframe's smoothness and the source need them
+                after_pose.get()  # the keyframe's smoothness needs them
             except SpectralError as exc:  # the pose is out: the scan is not lost for this
                 log.warning('%s; its keyframe, if any, is mapped without them', exc)
-            else:
-                t1 = time.perf_counter()
-                if T_observed is not None:
-                    self.frequency_source.observe(cropped, T_observed)
-                observe_s = time.perf_counter() - t1
-            timings_s['filter'] = after_pose.seconds + observe_s
-        if next_scan_due_s is None and self._arrival is not None:
-            next_scan_due_s = self._arrival[0] + self.config.registration.scan_period_s
-        timings_s['map_update'] = self.registration.update_map(next_scan_due_s)
-        self._work_ended_s = time.perf_counter()
-        return self._work_ended_s - t0
-
-    def _note_arrival(self, started_s: float, stamp_ns: int) -> None:
-        """When this scan arrived: when its work began, or earlier if it waited behind
-        the work before it (its stamp's step from the scan before, after that one's
-        arrival; a scan that began after the work before it had been idle a while did not
-        wait). Scans come every scan period, so the next is due one period later."""
-        arrived_s = started_s
-        waited = started_s - self._work_ended_s <= IDLE_BEFORE_A_SCAN_S
-        if waited and self._arrival is not None and stamp_ns >= self._arrival[1]:
-            arrived_s = min(started_s, self._arrival[0] + (stamp_ns - self._arrival[1]) * 1e-9)
-        self._arrival = (arrived_s, stamp_ns)
+            timings_s['filter'] = after_pose.seconds
+        timings_s['map_update'] = self.registration.update_map()
+        return time.perf_counter() - t0
 
     def map_snapshot(self, latest: FrameResult | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -482,11 +428,7 @@ class OdometryPipeline:
         from scipy.spatial import cKDTree
         reg = self.registration
         self.update_map()
-        reg.local_map.adopt()  # map_update 'background': the newest rebuild, a scan early
-        points = reg.local_map.points_xyz
-        if not len(points) and reg._prev_scan is not None:
-            points = transform_points(reg.T_world_trusted, np.asarray(reg._prev_scan.points))
-        points = np.array(points, dtype=np.float64).reshape(-1, 3)
+        points = np.array(reg.reference_points_world(), dtype=np.float64).reshape(-1, 3)
         nu = np.full(points.shape[0], np.nan, dtype=np.float32)
         if (latest is not None and latest.nu is not None and len(latest.filtered)
                 and points.shape[0]):

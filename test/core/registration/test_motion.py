@@ -7,8 +7,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gft_odom.core.geometry import make_transform
-from gft_odom.core.motion_model import MotionModel, delta_of_twist
 from gft_odom.core.registration import RegistrationConfig
+from gft_odom.core.registration import motion as motion_module
+from gft_odom.core.registration.motion import (
+    MotionModel,
+    delta_of_twist,
+    scale_delta,
+    transform_magnitude,
+)
 
 CONFIG = RegistrationConfig()  # 2 m/s, 4 rad/s, margin 0.5, gap 1 s
 STEP_NS = 100_000_000
@@ -87,22 +93,21 @@ def test_turn_guesses_change_the_yaw_rate_either_way_capped():
     np.testing.assert_allclose(T_init, delta_of_twist(velocity, 0.1))  # from the trusted pose
     # 30 ms after the trusted pose (a copy, or jitter) there is no turn to guess.
     assert model.turn_guesses(STEP_NS * 3 // 10, retry=True) == []
-    off = MotionModel(RegistrationConfig(recovery_yaw_guesses=0))
-    off.trust(0, np.eye(4), 'first')
-    assert off.turn_guesses(STEP_NS, retry=True) == []
 
 
 @pytest.mark.parametrize('second_reference', [False, True])
 def test_a_slid_trusted_pose_can_be_passed_over_by_the_one_before_it(second_reference):
     """1.8 m/s along x; the second trusted pose slid 0.15 m back. The true third pose is
-    0.33 m from it in 0.1 s (beyond 0.3 m) but 0.36 m from the first in 0.2 s (within 0.6)."""
-    config = RegistrationConfig(plausible_from_previous_trusted=second_reference)
-    model = MotionModel(config)
+    0.33 m from it in 0.1 s (beyond 0.3 m) but 0.36 m from the first in 0.2 s (within 0.6).
+    Without the trusted pose before (a model that forgets it), the true pose is refused."""
+    model = MotionModel(CONFIG)
     model.trust(0, np.eye(4), 'first')
     model.advance(0, np.eye(4))
     slid = make_transform(None, [0.18 - 0.15, 0.0, 0.0])
     model.trust(STEP_NS, slid, 'ok')
     model.advance(STEP_NS, slid)
+    if not second_reference:
+        model.previous_trusted = None
     true_next = make_transform(None, [0.36, 0.0, 0.0])
     assert model.plausible_since_trusted(2 * STEP_NS, true_next) is second_reference
     assert model.last_implied_rates[0] == pytest.approx(3.3)  # from the last trusted pose
@@ -113,39 +118,35 @@ def test_a_slid_trusted_pose_can_be_passed_over_by_the_one_before_it(second_refe
     assert not model.plausible_since_trusted(2 * STEP_NS, make_transform(None, [0.9, 0, 0]))
 
 
-@pytest.mark.parametrize('from_refused', [False, True])
-def test_a_match_that_agrees_with_the_refused_one_before_it_is_plausible(from_refused):
-    """1.8 m/s along x; two trusted poses slid back (-0.25 m at 0.1 s, -0.5 m at 0.2 s).
-    The match at 0.3 s, at the truth (0.54 m), is beyond the bounds from both: refused, and
-    remembered. The next, at 0.4 s (0.72 m), still is (1.22 m in 0.2 s, 0.97 m in 0.3 s),
-    but it is 0.18 m from the refused one: with the option it is trusted, the refused pose
-    becomes the trusted pose before it, and the velocity is from there."""
-    model = MotionModel(RegistrationConfig(plausible_from_refused=from_refused))
+def test_prediction_is_per_second():
+    model = MotionModel(CONFIG)
+    model.velocity = np.array([0.0, 0.0, 0.5, 1.0, 0.0, 0.0])
+    distance_m, angle_rad = transform_magnitude(model.predicted_delta(0.05))
+    assert distance_m == pytest.approx(0.05) and angle_rad == pytest.approx(0.025)
+    np.testing.assert_array_equal(model.predicted_delta(-0.1), np.eye(4))
+
+
+def test_scale_delta_doubles_a_constant_twist():
+    T = make_transform(Rotation.from_euler('z', 0.1).as_matrix(), [0.2, 0.0, 0.0])
+    T2 = scale_delta(T, 2.0)
+    assert transform_magnitude(T2)[1] == pytest.approx(0.2)
+    np.testing.assert_allclose(T2[:3, 3], [0.4, 0.0, 0.0])
+    np.testing.assert_allclose(scale_delta(T, 0.0), np.eye(4), atol=1e-15)
+
+
+def test_deskew_assumes_the_recent_twist_weighted_by_its_span_and_planar():
+    """The mean twist of the last two trusted scans, each weighted by the share of a period
+    it spans; roll, pitch and climb left out (vibration on rough ground)."""
+    model = MotionModel(CONFIG)
+    assert motion_module.DESKEW_VELOCITY_WINDOW == 2
+    np.testing.assert_array_equal(model.deskew_motion(0.1), np.eye(4))  # nothing known yet
     model.trust(0, np.eye(4), 'first')
-    for step, x_m in ((1, -0.25), (2, -0.5)):
-        model.trust(step * STEP_NS, make_transform(None, [x_m, 0.0, 0.0]), 'ok')
-    refused = make_transform(None, [0.54, 0.0, 0.0])
-    assert not model.plausible_since_trusted(3 * STEP_NS, refused)
-    model.remember_refused(3 * STEP_NS, refused)
-    agreeing = make_transform(None, [0.72, 0.0, 0.0])
-    assert model.plausible_since_trusted(4 * STEP_NS, agreeing) is from_refused
-    assert model.vouched_by_refused(4 * STEP_NS, agreeing) is from_refused
-    # A copy 30 ms after the refused match is no second sweep; a match that disagrees with
-    # it (0.5 m on) is refused either way.
-    assert not model.plausible_since_trusted(3 * STEP_NS + STEP_NS * 3 // 10,
-                                             make_transform(None, [0.58, 0.0, 0.0]))
-    assert not model.plausible_since_trusted(4 * STEP_NS, make_transform(None, [1.04, 0, 0]))
-    if not from_refused:
-        assert model.refused_match is None  # the option off remembers nothing
-        return
-    model.trust(4 * STEP_NS, agreeing, 'ok')
-    assert model.velocity[3] == pytest.approx(1.8)  # from the refused pose over 0.1 s
-    T_previous, stamp_previous = model.previous_trusted
-    np.testing.assert_allclose(T_previous, refused)
-    assert stamp_previous == 3 * STEP_NS
-    assert model.refused_match is None  # a trusted pose ends what it vouched for
-    model.remember_refused(5 * STEP_NS, refused)
-    model.lose_track('test')  # kept through a loss: re-acquisition may use it
-    assert model.refused_match is not None
-    model.reset()
-    assert model.refused_match is None
+    first = make_transform(Rotation.from_euler('xz', [0.02, 0.1]).as_matrix(), [0.1, 0.0, 0.01])
+    model.trust(STEP_NS, first, 'ok')
+    second = first @ make_transform(Rotation.from_euler('z', 0.3).as_matrix(), [0.15, 0.0, 0.0])
+    model.trust(2 * STEP_NS, second, 'ok')
+    motion = model.deskew_motion(0.1)
+    distance_m, angle_rad = transform_magnitude(motion)
+    assert distance_m == pytest.approx(0.125, abs=0.01)
+    assert angle_rad == pytest.approx(0.2, abs=0.01)
+    assert motion[2, 3] == 0.0 and abs(motion[2, 0]) < 1e-12  # planar

@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gft_odom.core.gauss_newton import IcpResult, MapTarget
+from gft_odom.core.registration.matching import MapTarget
 
 if TYPE_CHECKING:
-    from gft_odom.core.registration_config import RegistrationConfig
+    from gft_odom.core.registration.config import RegistrationConfig
 
 
 def in_world_axes(matrix_6x6: np.ndarray, R_world_target: np.ndarray) -> np.ndarray:
@@ -33,15 +33,12 @@ def icp_information(source_xyz: np.ndarray, target, result, rmse: float) -> np.n
     directions (ground only: x, y, yaw) as small information, hence large variances.
     Point-to-point rows are [I, -[a]x].
     """
-    if isinstance(result, IcpResult) and result.information is not None:
-        # Gauss-Newton: its own weighted normal matrix
-        return result.information
     pairs = np.asarray(result.correspondence_set)
     if pairs.shape[0] < 6:
         return None
     R_target_sensor = np.asarray(result.transformation)[:3, :3]
     a = source_xyz[pairs[:, 0]] @ R_target_sensor.T
-    # The map as its solver saw it (normals estimated on demand), or open3d's cloud.
+    # The map's normals, or (paper mode) open3d's cloud of the previous scan (none).
     n = (target.normals_at(pairs[:, 1]) if isinstance(target, MapTarget)
          else np.asarray(target.normals)[pairs[:, 1]] if target.has_normals() else None)
     if n is not None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gft_odom.core.nearest import MapIndex
+from gft_odom.core.registration.map_index import MapIndex
 
 
 @pytest.mark.parametrize('k', [1, 4, 15])

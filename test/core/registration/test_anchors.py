@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from gft_odom.core.anchors import AnchorStore, _insert
-from gft_odom.core.local_map import LocalMap, voxel_keys, voxel_x_slab
+from gft_odom.core.registration.anchors import AnchorStore, _insert
+from gft_odom.core.registration.local_map import LocalMap
+from gft_odom.core.registration.voxels import voxel_keys, voxel_x_slab
 
 
 def test_insert_matches_numpy_for_rows_and_values():
@@ -67,13 +68,13 @@ def test_found_anchors_report_their_smoothness_and_can_be_replaced():
 
 def test_a_long_runs_anchors_far_away_are_not_served():
     """A map with anchors along 2 km serves only those near its newest keyframe."""
-    local_map = LocalMap(0.3, 40.0, 80_000, 1, 1.0, 0.2, 15, with_normals=False,
-                         anchor_smoothness=0.75)
+    local_map = LocalMap(0.3, 40.0, 80_000, 1, 1.0)
     rng = np.random.default_rng(3)
     farm = rng.uniform([-1000.0, -50.0, 0.0], [1000.0, 50.0, 3.0], (20_000, 3))
     keys, first = np.unique(voxel_keys(farm, 0.3), return_index=True)
+    # Each seen from where the keyframe will stand: the view rule serves them all.
     local_map._anchors.add(keys, farm[first], np.ones(first.shape[0]),
-                           np.zeros((first.shape[0], 3)))
+                           np.tile([500.0, 0.0, 0.0], (first.shape[0], 1)))
     T = np.eye(4)
     T[0, 3] = 500.0
     local_map.add_keyframe(np.array([[500.0, 0.0, 0.0]]), T, np.array([1.0]))

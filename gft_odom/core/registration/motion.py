@@ -8,8 +8,8 @@ can make, and a match far from the prediction is a jump.
 Everything is measured from the last trusted pose over the time since it, never from a
 fallback's extrapolated pose: after fallbacks the previous pose is only a prediction, and its
 error is not this scan's motion. A motion beyond the bounds from it may still be plausible
-from the trusted pose before it (`plausible_from_previous_trusted`): one trusted match that
-slid along the track must not lock the true next pose out. After a gap or a run of fallbacks
+from the trusted pose before it: one trusted match that slid along the track must not lock
+the true next pose out. After a gap or a run of fallbacks
 the velocity is dropped (a stale velocity would throw every later guess off) and
 re-acquisition is pending; the velocity from before the loss seeds its guesses. The twists of
 the last trusted scans give deskew a velocity with the ICP noise averaged out.
@@ -32,9 +32,24 @@ from gft_odom.core.geometry import (
 )
 
 if TYPE_CHECKING:
-    from gft_odom.core.registration_config import RegistrationConfig
+    from gft_odom.core.registration.config import RegistrationConfig
 
 log = logging.getLogger(__name__)
+# Slack on the platform's bounds for stamp jitter and ICP noise over short steps (a copy of a
+# scan rotated 90 deg 30 ms later implies 52 rad/s, far beyond it).
+MOTION_MARGIN = 0.5
+# Largest correction to the constant-velocity prediction per scan period: a Jackal cannot
+# change its velocity by more within 0.1 s. Scaled by the time the prediction covers.
+MAX_TRANSLATION_JUMP_M = 0.5
+MAX_ROTATION_JUMP_RAD = 0.25
+# Deskew assumes the mean twist of the last this many trusted scans (ICP noise averages out;
+# a mean over more lags where the yaw rate jumps at a turn's onset).
+DESKEW_VELOCITY_WINDOW = 2
+# Re-acquisition and the turn check also try the velocity with its yaw rate changed by
+# k x TURN_GUESS_STEP_RPS, k = 1..TURN_GUESSES, either way: at a fast turn's onset in open
+# ground ICP from a guess without the turn slides along the track instead of turning.
+TURN_GUESSES = 2
+TURN_GUESS_STEP_RPS = 1.0
 # Times are counted in scan periods, at least this share of one. The jump bounds hold per
 # period and scale with the time the prediction covers (a correction to the constant-velocity
 # guess comes from a change of velocity, which grows with that time); ICP's own noise, mm and
@@ -70,9 +85,8 @@ def transform_magnitude(T: np.ndarray) -> tuple[float, float]:
 class MotionModel:
     """The sensor's pose, last trusted pose and velocity: predicts, bounds and judges motion.
 
-    Reads the motion fields of a RegistrationConfig (physical bounds and margin, jump bounds,
-    gap, scan period, deskew window). `track_loss` False (paper mode: no map to re-acquire
-    against) never drops the velocity.
+    Reads the platform's bounds, the gap and the scan period of a RegistrationConfig.
+    `track_loss` False (paper mode: no map to re-acquire against) never drops the velocity.
     """
 
     def __init__(self, config: RegistrationConfig, track_loss: bool = True):
@@ -89,17 +103,14 @@ class MotionModel:
         # and re-acquisition are measured from here, over the time since it.
         self.T_world_trusted = np.eye(4)
         self.trusted_stamp_ns: int | None = None
-        # The trusted pose before it, and its stamp (`plausible_from_previous_trusted`).
+        # The trusted pose before it, and its stamp: a second reference of plausibility.
         self.previous_trusted: tuple[np.ndarray, int] | None = None
-        # The last match refused since the trusted pose, and its stamp
-        # (`plausible_from_refused`).
-        self.refused_match: tuple[np.ndarray, int] | None = None
         # (rot_x, rot_y, rot_z, v_x, v_y, v_z) in rad/s, m/s, previous sensor axes.
         self.velocity = np.zeros(6)
         # The velocities of the last trusted scans and the time each spans: deskew assumes
         # their mean weighted by it (a scan 30 ms after the last counts a third).
         self.twists: deque[tuple[np.ndarray, float]] = deque(
-            maxlen=self.config.deskew_velocity_window)
+            maxlen=DESKEW_VELOCITY_WINDOW)
         # Re-acquiring after a gap or a run of fallbacks; the velocity before the loss.
         self.recovering = False
         self.velocity_before_loss = np.zeros(6)
@@ -166,65 +177,35 @@ class MotionModel:
         """`is_plausible` without recording the rates."""
         cfg = self.config
         distance_m, angle_rad = transform_magnitude(T_prev_curr)
-        slack = (1.0 + cfg.motion_margin) * max(dt_s, 0.0)
+        slack = (1.0 + MOTION_MARGIN) * max(dt_s, 0.0)
         return (distance_m <= cfg.max_speed_mps * slack
                 and angle_rad <= cfg.max_yaw_rate_rps * slack)
 
     def plausible_since_trusted(self, stamp_ns: int, T_world_est: np.ndarray) -> bool:
-        """Could the robot have reached `T_world_est` from the last trusted pose, or
-        (`plausible_from_previous_trusted`) from the trusted pose before it? A match that
-        slid along the track leaves a last trusted pose from which the true next one looks
-        beyond the bounds; the one before it is a second reference. The rates reported are
-        from the last trusted pose."""
+        """Could the robot have reached `T_world_est` from the last trusted pose, or from the
+        trusted pose before it? A match that slid along the track leaves a last trusted pose
+        from which the true next one looks beyond the bounds; the one before it is a second
+        reference. The rates reported are from the last trusted pose."""
         if self.is_plausible(*self.since_trusted(stamp_ns, T_world_est)):
             return True
-        return self._from_second_reference(stamp_ns, T_world_est) is not None
+        return self._from_previous_trusted(stamp_ns, T_world_est) is not None
 
-    def vouched_by_refused(self, stamp_ns: int, T_world_est: np.ndarray) -> bool:
-        """Beyond the bounds from the last trusted pose and the one before it, within them
-        from the last refused match (`plausible_from_refused`). A pose within the bounds from
-        the trusted pose is not vouched for, so the jump check still holds it to the
-        prediction."""
-        if self.refused_match is None or self._within_bounds(
-                *self.since_trusted(stamp_ns, T_world_est)):
-            return False
-        second = self._from_second_reference(stamp_ns, T_world_est)
-        return second is not None and second[2]
-
-    def remember_refused(self, stamp_ns: int, T_world_est: np.ndarray) -> None:
-        """A match that fitted as well as the recent ones, refused for the bounds or the
-        jump: the reference a next match that agrees with it may be measured from. Kept until
-        a pose is trusted or a newer match is refused (through a loss of track as well:
-        re-acquisition may take a fit plausible only from it, without making it the trusted
-        pose before), and used for at most `max_gap_s`."""
-        if self.config.plausible_from_refused:
-            self.refused_match = (np.array(T_world_est, dtype=float), int(stamp_ns))
-
-    def _from_second_reference(self, stamp_ns: int, T_world_est: np.ndarray
-                               ) -> tuple[np.ndarray, float, bool] | None:
-        """(motion, time it took, whether from the refused match) from the trusted pose
-        before the last (`plausible_from_previous_trusted`) or else the last refused match
-        (`plausible_from_refused`) to `T_world_est`, when within the bounds, that pose is
-        within a gap, and `stamp_ns` is at least half a scan period after the last trusted
-        pose and more than that after the refused match (sooner, a scan is more likely a copy
-        than the next sweep: the fault suite's mirrored copies, 30 ms after a scan, are judged
-        from that pose alone). None otherwise."""
-        half_period_s = 0.5 * self.config.scan_period_s
-        if self._elapsed_since_trusted(stamp_ns) < half_period_s:
+    def _from_previous_trusted(self, stamp_ns: int, T_world_est: np.ndarray
+                               ) -> tuple[np.ndarray, float] | None:
+        """(motion, time it took) from the trusted pose before the last to `T_world_est`,
+        when within the bounds, that pose is within a gap, and `stamp_ns` is at least half a
+        scan period after the last trusted pose (sooner, a scan is more likely a copy than
+        the next sweep: the fault suite's mirrored copies, 30 ms after a scan, are judged from
+        that pose alone). None otherwise."""
+        if (self.previous_trusted is None
+                or self._elapsed_since_trusted(stamp_ns) < 0.5 * self.config.scan_period_s):
             return None
-        references = []
-        if self.config.plausible_from_previous_trusted and self.previous_trusted is not None:
-            references.append((self.previous_trusted, False))
-        if self.config.plausible_from_refused and self.refused_match is not None:
-            references.append((self.refused_match, True))
-        for (T_world_ref, ref_stamp_ns), refused in references:
-            elapsed_s = (int(stamp_ns) - ref_stamp_ns) * 1e-9
-            if not (half_period_s if refused else 0.0) < elapsed_s <= self.config.max_gap_s:
-                continue
-            motion = invert_transform(T_world_ref) @ T_world_est
-            if self._within_bounds(motion, elapsed_s):
-                return motion, elapsed_s, refused
-        return None
+        T_world_ref, ref_stamp_ns = self.previous_trusted
+        elapsed_s = (int(stamp_ns) - ref_stamp_ns) * 1e-9
+        if not 0.0 < elapsed_s <= self.config.max_gap_s:
+            return None
+        motion = invert_transform(T_world_ref) @ T_world_est
+        return (motion, elapsed_s) if self._within_bounds(motion, elapsed_s) else None
 
     def _periods(self, span_s):
         """`span_s` in scan periods, at least MIN_PERIOD_SHARE (scalar or array)."""
@@ -234,11 +215,10 @@ class MotionModel:
         """Farther from the prediction than the jump bounds, scaled by the time the
         prediction has been extrapolated over (since the last trusted pose) in scan periods:
         a copy of a scan 30 ms after it may stray a third as far as a scan a period later."""
-        cfg = self.config
         jump_m, jump_rad = transform_magnitude(invert_transform(T_pred) @ T_est)
         allowance = self._periods(self.since_trusted(stamp_ns, T_est)[1])
-        if (jump_m > cfg.max_translation_jump_m * allowance
-                or jump_rad > cfg.max_rotation_jump_rad * allowance):
+        if (jump_m > MAX_TRANSLATION_JUMP_M * allowance
+                or jump_rad > MAX_ROTATION_JUMP_RAD * allowance):
             log.debug('ICP moved %.3f m / %.3f rad away from the prediction', jump_m, jump_rad)
             return True
         return False
@@ -250,9 +230,9 @@ class MotionModel:
         if not self._within_bounds(motion, elapsed_s):
             # Within them from the trusted pose before (`plausible_since_trusted`): the
             # motion since that one.
-            second = self._from_second_reference(stamp_ns, T_world_est)
+            second = self._from_previous_trusted(stamp_ns, T_world_est)
             if second is not None:
-                motion, elapsed_s, _ = second
+                motion, elapsed_s = second
         if 0.0 < elapsed_s <= self.config.max_gap_s:
             return self.capped(twist_of(motion, elapsed_s))
         return None
@@ -289,7 +269,7 @@ class MotionModel:
                      retry: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
         """(velocity, initial pose) pairs for a turn begun or ended since the last trusted
         pose: the velocity before the loss with its yaw rate (sensor z up) changed by
-        k x `recovery_yaw_rate_step_rps` either way, capped. None within half a scan period
+        k x TURN_GUESS_STEP_RPS either way, capped. None within half a scan period
         of the trusted pose: there even 2 rad/s more turn a guess by < 0.1 rad, which the
         match covers from the prediction (and a stamp 30 ms after a scan is more likely a
         copy than a turn: the fault suite's mirrored copies)."""
@@ -299,10 +279,10 @@ class MotionModel:
             return []
         before = self._before_loss(retry)
         velocities = []
-        for k in range(1, cfg.recovery_yaw_guesses + 1):
+        for k in range(1, TURN_GUESSES + 1):
             for sign in (-1.0, 1.0):
                 turned = before.copy()
-                turned[2] += sign * k * cfg.recovery_yaw_rate_step_rps
+                turned[2] += sign * k * TURN_GUESS_STEP_RPS
                 velocities.append(self.capped(turned))
         return self._from_trusted(velocities, elapsed_s)
 
@@ -329,14 +309,8 @@ class MotionModel:
         (`recovered`) to `recovered_velocity` (its winning guess, or a retry's motion)."""
         velocity = self.implied_velocity(stamp_ns, T_world_new) if status == 'ok' else None
         span_s = self.since_trusted(stamp_ns, T_world_new)[1]
-        vouched = status == 'ok' and self.vouched_by_refused(stamp_ns, T_world_new)
         if self.trusted_stamp_ns is not None:
             self.previous_trusted = (self.T_world_trusted, self.trusted_stamp_ns)
-        if vouched:
-            # Two matches that agree: the refused one was right, the trusted pose the error.
-            self.previous_trusted = self.refused_match
-            span_s = (int(stamp_ns) - self.refused_match[1]) * 1e-9
-        self.refused_match = None
         self.T_world_trusted = T_world_new.copy()
         self.trusted_stamp_ns = int(stamp_ns)
         if velocity is not None:
@@ -356,8 +330,8 @@ class MotionModel:
     def deskew_motion(self, dt_s: float, latest: np.ndarray | None = None) -> np.ndarray:
         """The motion over `dt_s` that deskew assumes: the twist of the recent trusted scans
         (with `latest`, this scan's own estimate, as the newest), their mean weighted by the
-        share of a scan period each spans (at most 1), planar by default."""
-        window = self.config.deskew_velocity_window
+        share of a scan period each spans (at most 1), planar."""
+        window = DESKEW_VELOCITY_WINDOW
         twists = list(self.twists)
         if latest is not None and dt_s > 0.0:
             twists = twists[len(twists) - window + 1:] + [(twist_of(latest, dt_s), dt_s)]
@@ -369,8 +343,9 @@ class MotionModel:
         # shorter one its share of a period: a velocity over 30 ms is ICP noise / 0.03 s.
         weights = np.minimum(self._periods(spans_s), 1.0)
         mean = np.sum(velocities * weights[:, None], axis=0) / np.sum(weights)
-        motion = delta_of_twist(mean, dt_s)
-        return planar_delta(motion) if self.config.deskew_planar else motion
+        # Planar: on rough ground a scan's roll, pitch and height rates are vibration that
+        # does not persist into the next scan.
+        return planar_delta(delta_of_twist(mean, dt_s))
 
     def scan_motion(self, stamp_ns: int, T_world_new: np.ndarray, dt_s: float) -> np.ndarray:
         """The motion over this scan's `dt_s` that deskew assumes: the mean motion since the

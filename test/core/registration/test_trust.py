@@ -7,11 +7,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gft_odom.core.geometry import make_transform
-from gft_odom.core.motion_model import MotionModel
-from gft_odom.core.registration_config import RegistrationConfig
-from gft_odom.core.trust import RECENT_FITNESS_MIN, TrustPolicy
+from gft_odom.core.registration import RegistrationConfig
+from gft_odom.core.registration.motion import MotionModel
+from gft_odom.core.registration.trust import (
+    MAX_CONSECUTIVE_FALLBACKS,
+    MIN_FITNESS,
+    MIN_RELATIVE_FITNESS,
+    RECENT_FITNESS_MIN,
+    TrustPolicy,
+)
 
-CONFIG = RegistrationConfig()  # its fitness bounds, 2 m/s x 1.5, jump 0.5 m / 0.25 rad
+CONFIG = RegistrationConfig()  # 2 m/s x 1.5; the jump bounds 0.5 m / 0.25 rad
 STEP_NS = 100_000_000
 
 
@@ -19,7 +25,7 @@ def _policy_trusting_the_origin() -> TrustPolicy:
     motion = MotionModel(CONFIG)
     motion.trust(0, np.eye(4), 'first')
     motion.advance(0, np.eye(4))
-    return TrustPolicy(CONFIG, motion)
+    return TrustPolicy(motion)
 
 
 def _yawed(rad: float) -> np.ndarray:
@@ -43,9 +49,9 @@ def test_refusal_names_the_check_a_pose_fails(T_est, fitness, T_pred, refusal):
 def test_a_fitness_far_below_the_recent_matches_is_refused_once_there_are_enough():
     policy = _policy_trusting_the_origin()
     T_est = make_transform(None, [0.1, 0.0, 0.0])
-    bound = CONFIG.min_relative_fitness * 0.95
-    low, fine = max(0.9 * bound, CONFIG.min_fitness), 1.05 * bound
-    assert CONFIG.min_fitness <= low < bound
+    bound = MIN_RELATIVE_FITNESS * 0.95
+    low, fine = max(0.9 * bound, MIN_FITNESS), 1.05 * bound
+    assert MIN_FITNESS <= low < bound
     for _ in range(RECENT_FITNESS_MIN - 1):
         policy.trusted(0.95)
         assert policy.refusal(T_est, low, np.eye(4), STEP_NS) is None  # too few to judge
@@ -56,26 +62,19 @@ def test_a_fitness_far_below_the_recent_matches_is_refused_once_there_are_enough
 
 def test_the_fallback_run_ends_tracking_and_a_trusted_pose_ends_the_run():
     policy = _policy_trusting_the_origin()
-    runs = [policy.fell_back() for _ in range(CONFIG.max_consecutive_fallbacks)]
-    assert runs == [False] * (CONFIG.max_consecutive_fallbacks - 1) + [True]
+    runs = [policy.fell_back() for _ in range(MAX_CONSECUTIVE_FALLBACKS)]
+    assert runs == [False] * (MAX_CONSECUTIVE_FALLBACKS - 1) + [True]
     policy.trusted(None)
     assert policy.consecutive_fallbacks == 0
-    assert policy.n_fallbacks == CONFIG.max_consecutive_fallbacks
+    assert policy.n_fallbacks == MAX_CONSECUTIVE_FALLBACKS
     assert policy.fell_back() is False
 
 
-@pytest.mark.parametrize('from_refused', [False, True])
-def test_a_match_that_agrees_with_a_refused_one_is_not_held_to_the_prediction(from_refused):
-    """The trusted pose slid 0.7 m back along x (origin, truth at 0.7 m); the prediction is
-    extrapolated from it. The match at 0.1 s (0.88 m) is refused for the bounds; the one at
-    0.2 s (1.06 m) agrees with it but is 1.06 m from the prediction (jump bound 2 x 0.5 m)."""
-    motion = MotionModel(RegistrationConfig(plausible_from_refused=from_refused))
+def test_paper_mode_judges_fitness_by_the_absolute_bound_alone():
+    motion = MotionModel(CONFIG)
     motion.trust(0, np.eye(4), 'first')
-    policy = TrustPolicy(motion.config, motion)
-    refused = make_transform(None, [0.88, 0.0, 0.0])
-    assert policy.refusal(refused, 0.9, np.eye(4), STEP_NS) == 'fallback_implausible'
-    motion.remember_refused(STEP_NS, refused)
-    agreeing = make_transform(None, [1.06, 0.0, 0.0])
-    # Plausible from nowhere without the option; with it, plausible and not a jump.
-    expected = None if from_refused else 'fallback_implausible'
-    assert policy.refusal(agreeing, 0.9, np.eye(4), 2 * STEP_NS) == expected
+    policy = TrustPolicy(motion, relative_fitness=False)
+    for _ in range(RECENT_FITNESS_MIN):
+        policy.trusted(0.95)
+    T_est = make_transform(None, [0.1, 0.0, 0.0])
+    assert policy.refusal(T_est, 1.01 * MIN_FITNESS, np.eye(4), STEP_NS) is None

@@ -1,11 +1,11 @@
 """The map's anchors: points kept after their keyframe left the window, one per voxel.
 
-A long run accumulates hundreds of thousands of anchors (up to `map_anchor_max_points`, 2M by
+A long run accumulates hundreds of thousands of anchors (up to `ANCHOR_MAX_POINTS`, 2M by
 default), and the map rebuild at every keyframe must neither sort them again nor touch those
 far away. They are kept sorted by voxel key, whose major axis is x, in two runs: a large one
 and a small recent one that new anchors join (merged into the large one when it grows past
 `RECENT_ROWS`). Serving the anchors near a keyframe is two binary searches for the slab of
-voxels within the map radius along x (`local_map.voxel_x_slab`), and a merge of the two slabs
+voxels within the map radius along x (`voxels.voxel_x_slab`), and a merge of the two slabs
 by key: the same anchors, in the same order, as one sorted array would give, at a cost that
 does not grow with the run.
 
