@@ -89,11 +89,9 @@ class SequenceCache:
         """Split a (P,) array over all cached points into one array per scan."""
         return [array[self._span(i)] for i in range(len(self))]
 
-    def keep(self, i: int, mask: BandMask, keep_isolated: bool, keep_out_of_range: bool
-             ) -> np.ndarray:
+    def keep(self, i: int, mask: BandMask, keep_isolated: bool) -> np.ndarray:
         """(n,) points of cropped scan i that `mask` keeps (`keep_mask` on the cached data)."""
-        return keep_mask(self.frequencies(i, mask.n_bands), mask, keep_isolated,
-                         keep_out_of_range)
+        return keep_mask(self.frequencies(i, mask.n_bands), mask, keep_isolated)
 
     # -- persistence ---------------------------------------------------------------------------
 

@@ -44,9 +44,8 @@ def _canopy_only(scan: Scan) -> Scan:
     return scan.select(np.flatnonzero(scan.points_xyz[:, 2] > 0.8))
 
 
-# A mask that keeps almost nothing: one band, and no out-of-range / isolated points.
-ALMOST_NOTHING = {'spectral.band_mask': (9,), 'spectral.keep_isolated': False,
-                  'spectral.keep_out_of_range': False}
+# A mask that keeps almost nothing: one band, and no isolated points.
+ALMOST_NOTHING = {'spectral.band_mask': (9,), 'spectral.keep_isolated': False}
 
 
 def _run(scans, degrade, overrides=None):
