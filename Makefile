@@ -47,6 +47,7 @@ bench: setup
 bench-record: setup
 	$(PY) benchmarks/bench_record.py --drives held-out
 	$(PY) benchmarks/bench_record.py --drives new-held-out
+	$(PY) benchmarks/bench_record.py --drives stress
 
 clean:
 	rm -rf build install log $(DEMO_OUT) .pytest_cache
