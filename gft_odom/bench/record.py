@@ -109,9 +109,18 @@ def _error_curve(run: MethodRun) -> tuple[np.ndarray, np.ndarray]:
 def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
               ) -> tuple[dict, tuple[np.ndarray, np.ndarray], Trajectory]:
     """One entry on one drive: its flat metrics (plus KITTI drift), error curve and sensor
-    trajectory (each pose stamped where it holds)."""
-    run = run_method(entry.method, sequence, entry.config(base),
-                     ground_truth=read_ground_truth(sequence.gt_path))
+    trajectory (each pose stamped where it holds). A peer that dies inside its own library
+    (GenZ-ICP's std::bad_alloc once its map runs away) is a result, `crashed`, not the end of
+    the record; our own pipeline failing is a bug and raises."""
+    try:
+        run = run_method(entry.method, sequence, entry.config(base),
+                         ground_truth=read_ground_truth(sequence.gt_path))
+    except (MemoryError, RuntimeError) as exc:
+        if ALL_METHODS[entry.method][1] is not None:
+            raise
+        nothing = Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
+        return ({'label': entry.label, 'crashed': f'{type(exc).__name__}: {exc}'},
+                (np.zeros(0), np.zeros(0)), nothing)
     metrics = dict(run.metrics)
     metrics['label'] = entry.label
     metrics['kitti_drift_pct'] = kitti_drift_pct(metrics)
@@ -245,6 +254,7 @@ def summarize_record(record: RecordRun) -> dict[str, dict]:
             'fallbacks': int(sum(r.get('fallbacks') or 0 for r in rows)),
             'distance_m': float(sum(r.get('path_length_m') or 0.0 for r in rows)),
             'drives': len(rows),
+            'crashed': sum(bool(r.get('crashed')) for r in rows),
             'best_on': sum(_is_best(record, entry.label, s.name) for s in record.sequences),
             **_stamp_summary(rows),
         }
@@ -281,7 +291,7 @@ def summary_markdown(summary: dict[str, dict]) -> str:
               'drift 100-800 m [%]', 'RPE 10 m [%]', 'latency median / p95 [ms]',
               'work a scan, mean [ms]', 'latency p95 at the sensor rate [ms]',
               'real-time factor', 'fallbacks']
-    rows = [[label, str(s['drives']), _fmt(s['ate_rmse_m']), str(s.get('best_on', 'n/a')),
+    rows = [[label, _drives_cell(s), _fmt(s['ate_rmse_m']), str(s.get('best_on', 'n/a')),
              _fmt(s.get('stamp_best_shift_median_ms'), 0),
              str(s.get('stamp_outside_tolerance', 'n/a')), _fmt(s.get('ate_mean_m')),
              _fmt(s.get('end_error_m')), _fmt(s['kitti_drift_pct'], 2),
@@ -293,16 +303,25 @@ def summary_markdown(summary: dict[str, dict]) -> str:
     return _table(header, rows)
 
 
+def _drives_cell(summary: dict) -> str:
+    """Drives run, and how many of them the method crashed on (no figure to average)."""
+    crashed = summary.get('crashed') or 0
+    return f"{summary['drives']} ({crashed} crashed)" if crashed else str(summary['drives'])
+
+
 def per_drive_markdown(record: RecordRun, key: str = 'ate_rmse_m', digits: int = 3) -> str:
     """One row per drive, one column per entry, of metric `key`."""
     header = ['drive', 'length [m]'] + [e.label for e in record.entries]
     rows = []
     for seq in record.sequences:
         first = next((record.metrics[(e.label, seq.name)] for e in record.entries
-                      if (e.label, seq.name) in record.metrics), {})
-        rows.append([seq.name, _fmt(first.get('path_length_m'), 0)] +
-                    [_fmt(record.metrics.get((e.label, seq.name), {}).get(key), digits)
-                     for e in record.entries])
+                      if record.metrics.get((e.label, seq.name), {}).get('path_length_m')
+                      is not None), {})
+        cells = []
+        for e in record.entries:
+            metrics = record.metrics.get((e.label, seq.name), {})
+            cells.append('crashed' if metrics.get('crashed') else _fmt(metrics.get(key), digits))
+        rows.append([seq.name, _fmt(first.get('path_length_m'), 0)] + cells)
     return _table(header, rows)
 
 

@@ -218,3 +218,29 @@ def test_the_ablation_rows_are_the_frequencys_controls():
     assert len({configs[label].pipeline.shuffle_seed for label in shuffled}) == 3
     assert all(configs[label].pipeline.shuffle_frequencies for label in shuffled)
     assert {e.method for e in record.ENTRIES} >= {'default+gft', 'genz-icp', 'ct-icp'}
+
+
+def test_a_peer_that_crashes_is_a_result_and_ours_crashing_is_a_bug(tmp_path, monkeypatch):
+    from gft_odom.bench import record as record_module
+
+    def crashing_run_method(method, *args, **kwargs):
+        raise MemoryError('std::bad_alloc')
+
+    monkeypatch.setattr(record_module, 'run_method', crashing_run_method)
+    monkeypatch.setattr(record_module, 'read_ground_truth', lambda path: None)
+    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
+    peer = Entry('GenZ', 'genz-icp')
+    record = run_record([peer], [sequence], cache_dir=tmp_path / 'cache')
+    assert record.metrics[('GenZ', 'spiral-1')]['crashed'] == 'MemoryError: std::bad_alloc'
+    summary = record_module.summarize_record(record)['GenZ']
+    assert summary['crashed'] == 1 and summary['ate_rmse_m'] is None
+    assert '| spiral-1 | n/a | crashed |' in record_module.per_drive_markdown(record)
+    assert '| GenZ | 1 (1 crashed) |' in record_module.summary_markdown(
+        record_module.summarize_record(record))
+    # Kept like any result: read back, not run again.
+    again = run_record([peer], [sequence], cache_dir=tmp_path / 'cache', cached_only=True)
+    assert again.metrics[('GenZ', 'spiral-1')]['crashed']
+    paths = record_module.write_record(again, tmp_path / 'out', {}, stem='crashed')
+    assert 'crashed' in paths['markdown'].read_text()
+    with pytest.raises(MemoryError):
+        run_record([Entry('ours', 'default+gft')], [sequence])
