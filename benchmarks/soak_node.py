@@ -85,7 +85,7 @@ MAX_RSS_SLOPE_MB_PER_MIN = 1.0
 def pose_errors(sent_index: np.ndarray, answered_T: list, truth_base: np.ndarray):
     """Position errors [m] of the answered poses after rigid alignment to the ground truth of
     their scans, and the distance driven by the ground truth over the sent scans."""
-    from gft_odom.core.metrics import umeyama_alignment
+    from gft_odom.core.alignment import umeyama_alignment
     est = np.array([T[:3, 3] for T in answered_T])
     ref = truth_base[sent_index, :3, 3]
     R, t, _ = umeyama_alignment(est, ref)

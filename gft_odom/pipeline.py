@@ -33,7 +33,7 @@ from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transfor
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
-from gft_odom.core.trajectory import Trajectory
+from gft_odom.core.trajectory import Trajectory, TrajectoryRecorder
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError, SpectralError
 
@@ -170,8 +170,7 @@ class OdometryPipeline:
         self.bounds_watch = BoundsWatch(config.registration.max_speed_mps,
                                         config.registration.max_yaw_rate_rps)
         self.status_counts: Counter[str] = Counter()
-        self._stamps_ns: list[int] = []
-        self._poses: list[np.ndarray] = []
+        self._recorded = TrajectoryRecorder()
         # Trajectories of the odometry runs ended by a clock reset (bag loop), oldest first.
         self.finished_segments: list[Trajectory] = []
         self._last_accepted_ns: int | None = None
@@ -190,9 +189,9 @@ class OdometryPipeline:
         self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
-        if self._stamps_ns:
+        if len(self._recorded):
             self.finished_segments.append(self.sensor_trajectory())
-        self._stamps_ns, self._poses = [], []
+        self._recorded.clear()
 
     def screen(self, scan: Scan) -> Rejection | None:
         """Why `scan` would be rejected now, or None (no state changes)."""
@@ -315,8 +314,7 @@ class OdometryPipeline:
         pose_stamp_ns = int(scan.stamp_ns) + int(round(
             self.registration.pose_time_offset_s(kept.time_offset_s) * NS_PER_S))
         if self.record_trajectory:
-            self._stamps_ns.append(pose_stamp_ns)
-            self._poses.append(reg.T_world_sensor)
+            self._recorded.append(pose_stamp_ns, reg.T_world_sensor)
         timings_s = {'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
                      'pipeline': time.perf_counter() - t0}
         self._left_after_pose = (after_pose, timings_s)
@@ -442,8 +440,7 @@ class OdometryPipeline:
 
     def sensor_trajectory(self) -> Trajectory:
         """T_world_sensor of every registered scan (world = first sensor frame)."""
-        return Trajectory(np.array(self._stamps_ns, dtype=np.int64),
-                          np.array(self._poses).reshape(-1, 4, 4))
+        return self._recorded.trajectory()
 
     def base_trajectory(self) -> Trajectory:
         """T_odom_base of every registered scan: what the node publishes."""

@@ -23,18 +23,24 @@ from functools import partial
 import numpy as np
 import open3d as o3d
 
-from gft_odom.core.deferred import Deferred, resolved
+from gft_odom.core.deferred import Deferred
 from gft_odom.core.deskew import azimuth_time_offsets, deskew_points, sweep_middle_offset_s
-from gft_odom.core.geometry import finite_rows, invert_transform, transform_points
+from gft_odom.core.geometry import invert_transform, transform_points
 from gft_odom.core.registration.config import RegistrationConfig
 from gft_odom.core.registration.local_map import LocalMap
 from gft_odom.core.registration.matching import MapMatcher, point_to_point_icp, to_cloud
 from gft_odom.core.registration.motion import MotionModel, delta_of_twist
 from gft_odom.core.registration.recovery import Match, Recovery, fitted_match
+from gft_odom.core.registration.sweep import (
+    Sweep,
+    checked_input,
+    map_smoothness,
+    smoothness_or_unknown,
+)
 from gft_odom.core.registration.trust import TrustPolicy
 from gft_odom.core.registration.uncertainty import PoseUncertainty, world_information
 from gft_odom.core.registration.voxels import voxel_downsample_indices
-from gft_odom.errors import RegistrationError, SpectralError
+from gft_odom.errors import RegistrationError
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +54,6 @@ TRUSTED_STATUSES = ('first', 'ok', 'recovered')
 RETRIED_STATUSES = ('fallback_low_fitness', 'fallback_diverged', 'fallback_implausible')
 # Below this many downsampled points ICP is not attempted.
 MIN_POINTS = 100
-# A point's smoothness = its graph frequency nu / SMOOTH_NU, clipped to [0, 1] (ground and
-# trunks ~0.5 on the scan-line graph, canopy ~0): what the map's anchors keep it by.
-SMOOTH_NU = 0.4
 
 
 @dataclass
@@ -80,32 +83,6 @@ class RegistrationResult:
     def fell_back(self) -> bool:
         """True when ICP was not trusted and the prediction was used."""
         return self.status.startswith('fallback')
-
-
-@dataclass
-class _Sweep:
-    """One scan on its way through `register`: the whole scan and what the steps make of it."""
-
-    points_xyz: np.ndarray  # (N, 3) the whole scan, sensor frame
-    time_offset_s: np.ndarray | None  # (N,) per-point times from the bag, if any
-    nu: np.ndarray | Deferred | None  # (N,) per-point graph frequency, if any
-    keep: np.ndarray | None = None  # indices of the downsampled points
-    source_xyz: np.ndarray | None = None  # the points ICP matches (downsampled, deskewed)
-    point_smoothness: np.ndarray | Deferred | None = None  # theirs, as the map keeps it
-    offsets_s: np.ndarray | None = None  # (N,) point times; set only when deskewed
-    dt_s: float = 0.0  # since the previous scan
-    scan_motion: np.ndarray | None = None  # its own motion, when re-deskewed with it
-
-    @property
-    def n_used(self) -> int:
-        """How many points ICP matches."""
-        return int(self.source_xyz.shape[0])
-
-    def deskewed(self, motion: np.ndarray) -> np.ndarray:
-        """The downsampled points deskewed with `motion` over the scan's `dt_s` (needs
-        `offsets_s`)."""
-        return deskew_points(self.points_xyz[self.keep], self.offsets_s[self.keep], motion,
-                             self.dt_s)
 
 
 def _delegated(part: str, name: str, settable: bool = False) -> property:
@@ -193,7 +170,7 @@ class ScanRegistration:
         t0 = time.perf_counter()
         points_world, T_world_sensor, smoothness = pending
         self.local_map.add_keyframe(points_world, T_world_sensor,
-                                    _smoothness_or_unknown(smoothness, points_world.shape[0]))
+                                    smoothness_or_unknown(smoothness, points_world.shape[0]))
         if len(self.local_map):
             self.local_map.target()
         return time.perf_counter() - t0
@@ -229,7 +206,7 @@ class ScanRegistration:
         voxel). A `Deferred` nu is computed only when the keyframe is added, in `update_map`,
         after the pose. `defer_map_update`: a keyframe this scan makes waits for `update_map`
         (or the next `register`), so the pose is returned before the map's rebuild."""
-        sweep = _Sweep(*self._check_input(points_xyz, time_offset_s, nu))
+        sweep = Sweep(*checked_input(points_xyz, time_offset_s, nu))
         timings: dict[str, float] = {}
         # A keyframe a deferred call left, when its caller did not: this scan is waiting.
         self.update_map()
@@ -272,17 +249,17 @@ class ScanRegistration:
 
     # ------------------------------------------------------------ the steps
 
-    def _downsample(self, sweep: _Sweep, timings: dict[str, float]) -> None:
+    def _downsample(self, sweep: Sweep, timings: dict[str, float]) -> None:
         """The source points (the first in scan order of each voxel) and their smoothness as
         the map keeps it."""
         t0 = time.perf_counter()
         sweep.keep = voxel_downsample_indices(sweep.points_xyz, self.config.voxel_size_m)
         sweep.source_xyz = sweep.points_xyz[sweep.keep]
         if sweep.nu is not None:
-            sweep.point_smoothness = _map_smoothness(sweep.nu, sweep.keep)
+            sweep.point_smoothness = map_smoothness(sweep.nu, sweep.keep)
         timings['downsample'] = time.perf_counter() - t0
 
-    def _deskew(self, sweep: _Sweep, timings: dict[str, float]) -> None:
+    def _deskew(self, sweep: Sweep, timings: dict[str, float]) -> None:
         """Deskew the source points with the mean twist of the recent trusted scans."""
         t0 = time.perf_counter()
         if self.deskew and sweep.source_xyz.shape[0]:
@@ -290,7 +267,7 @@ class ScanRegistration:
             sweep.source_xyz = sweep.deskewed(self.motion.deskew_motion(sweep.dt_s))
         timings['deskew'] = time.perf_counter() - t0
 
-    def _match_or_reacquire(self, sweep: _Sweep, T_pred: np.ndarray, stamp_ns: int,
+    def _match_or_reacquire(self, sweep: Sweep, T_pred: np.ndarray, stamp_ns: int,
                             timings: dict[str, float]):
         """(status, pose, match or None, refused rates): the first scan, too few points,
         re-acquisition after a loss, or ICP against the reference (retried the way
@@ -344,7 +321,7 @@ class ScanRegistration:
             return Match(refusal, T_pred, float(result.fitness), float(result.inlier_rmse), None)
         return fitted_match('ok', result, T_est, source_xyz, target)
 
-    def _deskewed_as(self, sweep: _Sweep, velocity: np.ndarray) -> np.ndarray:
+    def _deskewed_as(self, sweep: Sweep, velocity: np.ndarray) -> np.ndarray:
         """The source points deskewed as they would be were `velocity` the scan's motion (the
         turn check's guesses); the sweep's own when it was not deskewed."""
         if sweep.offsets_s is None or not sweep.dt_s > 0.0:
@@ -352,7 +329,7 @@ class ScanRegistration:
         return sweep.deskewed(self.motion.deskew_motion(sweep.dt_s,
                                                         delta_of_twist(velocity, sweep.dt_s)))
 
-    def _redeskew(self, sweep: _Sweep, stamp_ns: int, status: str, T_new: np.ndarray) -> None:
+    def _redeskew(self, sweep: Sweep, stamp_ns: int, status: str, T_new: np.ndarray) -> None:
         """Deskew a trusted scan again with its own motion (only when it was deskewed)."""
         if sweep.offsets_s is None or status not in ('ok', 'recovered') or not sweep.dt_s > 0.0:
             return
@@ -362,7 +339,7 @@ class ScanRegistration:
                                                                     sweep.scan_motion))
 
     def _finish(self, stamp_ns: int, status: str, T_new: np.ndarray, t_start: float,
-                timings: dict[str, float], sweep: _Sweep | None = None,
+                timings: dict[str, float], sweep: Sweep | None = None,
                 match: Match | None = None) -> RegistrationResult:
         """Trust the pose (motion model, fitness) or count a fallback, update the reference,
         move the pose; the result."""
@@ -393,7 +370,7 @@ class ScanRegistration:
             timings_s=timings, twist=self.velocity.copy(),
             information=world_information(status, information, R_world_target))
 
-    def _with_extras(self, result: RegistrationResult, sweep: _Sweep,
+    def _with_extras(self, result: RegistrationResult, sweep: Sweep,
                      refused: tuple) -> RegistrationResult:
         """The rates a refused match implied, and what deskewing this scan took (for
         `deskewed_like_last`: the map's snapshot)."""
@@ -406,7 +383,7 @@ class ScanRegistration:
 
     # ------------------------------------------------------------ the reference
 
-    def _update_reference(self, sweep: _Sweep | None, T_world_sensor: np.ndarray,
+    def _update_reference(self, sweep: Sweep | None, T_world_sensor: np.ndarray,
                           status: str) -> None:
         """Paper: the scan becomes the target. Default: a keyframe when due (its points and
         their smoothness, added in `update_map`)."""
@@ -425,34 +402,6 @@ class ScanRegistration:
             self._pending_keyframe = (transform_points(T_world_sensor, sweep.source_xyz),
                                       T_world_sensor.copy(), sweep.point_smoothness)
 
-    # ------------------------------------------------------------ input
-
-    def _check_input(self, points_xyz, time_offset_s, nu=None):
-        points = np.asarray(points_xyz, dtype=float)
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise RegistrationError(f'points_xyz must have shape (N, 3), got {points.shape}')
-        if isinstance(nu, Deferred):
-            nu = nu.then(partial(_checked_nu, n_points=points.shape[0]))
-        elif nu is not None:
-            nu = _checked_nu(nu, points.shape[0])
-        if time_offset_s is not None:
-            time_offset_s = np.asarray(time_offset_s, dtype=float).reshape(-1)
-            if time_offset_s.shape[0] != points.shape[0]:
-                raise RegistrationError(
-                    f'time_offset_s has {time_offset_s.shape[0]} values for '
-                    f'{points.shape[0]} points')
-        finite = finite_rows(points)
-        if time_offset_s is not None:
-            finite &= np.isfinite(time_offset_s)
-        if not finite.all():
-            points = points[finite]
-            time_offset_s = None if time_offset_s is None else time_offset_s[finite]
-            if isinstance(nu, Deferred):
-                nu = nu.then(lambda values: values[finite])
-            elif nu is not None:
-                nu = nu[finite]
-        return points, time_offset_s, nu
-
     def _time_offsets(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None):
         if time_offset_s is not None:
             return time_offset_s
@@ -460,34 +409,3 @@ class ScanRegistration:
                                     self.config.azimuth_stamp_at_sweep_end)
 
 
-def smoothness_from_nu(nu: np.ndarray, unknown: float = np.nan) -> np.ndarray:
-    """Each point's smoothness in [0, 1] from its graph frequency (`unknown` where nu is
-    NaN: a point without a spectrum)."""
-    nu = np.asarray(nu, dtype=np.float64)
-    return np.clip(np.nan_to_num(nu / SMOOTH_NU, nan=unknown), 0.0, 1.0)
-
-
-def _checked_nu(values, n_points: int) -> np.ndarray:
-    """`values` as the (n_points,) float frequencies of a scan."""
-    nu = np.asarray(values, dtype=float).reshape(-1)
-    if nu.shape[0] != n_points:
-        raise RegistrationError(f'nu has {nu.shape[0]} values for {n_points} points')
-    return nu
-
-
-def _map_smoothness(nu: np.ndarray | Deferred, index: np.ndarray) -> np.ndarray | Deferred:
-    """The smoothness the map keeps for the points `index` (NaN: unknown); deferred with
-    `nu`."""
-    if isinstance(nu, Deferred):
-        return nu.then(lambda values: smoothness_from_nu(values[index]))
-    return smoothness_from_nu(nu[index])
-
-
-def _smoothness_or_unknown(smoothness: np.ndarray | Deferred | None, n_points: int
-                           ) -> np.ndarray | None:
-    """A keyframe's smoothness; unknown (NaN) when its deferred frequencies failed: the
-    keyframe still goes into the map, as it would without frequencies."""
-    try:
-        return resolved(smoothness)
-    except SpectralError:  # its caller said so (OdometryPipeline.update_map)
-        return np.full(n_points, np.nan)
