@@ -65,7 +65,7 @@ def _growth_mb(n_points: int) -> float:
 
 @pytest.mark.slow
 def test_a_huge_scan_leaves_no_lasting_rss_growth():
-    # Six runs each (pre-v1.0): normal +4.27 to +4.33 MB, huge +6.93 to +7.70 MB. Both ends
+    # Six runs each (0.1.0): normal +4.27 to +4.33 MB, huge +6.93 to +7.70 MB. Both ends
     # are trimmed: untrimmed, a run lands in one of two levels ~10 MB apart (normal -14 to
     # -5 MB, huge -8 to -1 MB), which would fail this test at times.
     normal = _growth_mb(29_000)

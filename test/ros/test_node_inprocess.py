@@ -183,7 +183,7 @@ def test_check_params_files_says_what_is_wrong(tmp_path):
 
 
 def test_default_node_publishes_every_point_with_its_frequency_and_band(make_node, scans):
-    """Spectral engine v2: the package defaults compute the frequencies on every scan."""
+    """The package defaults compute the frequencies on every scan."""
     from gft_odom.core.spectral import SpectralFilter
     from gft_odom.io.pointcloud2 import decode_fields, decode_scan
     from gft_odom.pipeline import OdometryPipeline
