@@ -1,0 +1,165 @@
+"""Localisation in a map of an earlier day: the map a drive leaves, and each scan matched to it.
+
+Odometry drifts with distance; a map saved on an earlier drive of the same block does not.
+`DriveMap` keeps what a drive saw, voxel by voxel (the first point of each voxel, as the
+odometry's map keeps the oldest view), with each point's graph frequency and any per-point
+attribute a caller adds (the simulator's surface class, for the oracle). `PriorMap` is such a
+map loaded for matching (normals and a search index, built once). `Localiser` registers every
+scan against it from the odometry's prediction: the pose in the map frame is
+`T_map_odom @ T_odom_sensor`, and a trusted match moves `T_map_odom` (REP 105: localisation
+owns map -> odom, the odometry odom -> base_link). A scan that does not fit leaves
+`T_map_odom` as it was: the odometry carries the pose until the map fits again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from gft_odom.core.geometry import invert_transform
+from gft_odom.core.registration.local_map import NORMAL_NEIGHBOURS
+from gft_odom.core.registration.matching import MapTarget, point_to_plane_icp
+from gft_odom.core.registration.voxels import voxel_downsample_indices, voxel_keys
+from gft_odom.errors import RegistrationError
+
+# The map's voxel, as the odometry's map (registration.map_voxel_size_m's default).
+MAP_VOXEL_M = 0.3
+# The scan's source voxel, as the odometry's (registration.voxel_size_m's default).
+SOURCE_VOXEL_M = 0.4
+# Match: pairs within this gate, Tukey scale, iterations (the odometry's defaults).
+GATE_M = 1.0
+KERNEL_M = 0.3
+ITERATIONS = 30
+# A match is trusted when this share of the scan has a map point within the gate and it moves
+# the prediction by no more than this (the odometry's drift between scans is millimetres).
+MIN_FITNESS = 0.3
+MAX_CORRECTION_M = 0.5
+MAX_CORRECTION_RAD = 0.1
+MIN_POINTS = 100
+
+
+class DriveMap:
+    """The points a drive saw, one per voxel (the first to arrive), in the odometry's world
+    frame, with their frequency (NaN: none) and optional named per-point attributes."""
+
+    def __init__(self, voxel_m: float = MAP_VOXEL_M) -> None:
+        self.voxel_m = float(voxel_m)
+        self._keys = np.zeros(0, dtype=np.int64)  # sorted
+        self.points_xyz = np.zeros((0, 3))
+        self.nu = np.zeros(0, dtype=np.float32)
+        self.attributes: dict[str, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return int(self.points_xyz.shape[0])
+
+    def add(self, points_world: np.ndarray, nu: np.ndarray | None = None,
+            **attributes: np.ndarray) -> int:
+        """Add the points of voxels not yet seen; returns how many were new."""
+        points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        if nu is None:
+            nu = np.full(points.shape[0], np.nan, dtype=np.float32)
+        first = voxel_downsample_indices(points, self.voxel_m)
+        keys = voxel_keys(points[first], self.voxel_m)
+        at = np.searchsorted(self._keys, keys)
+        seen = (at < self._keys.size) & (self._keys[np.minimum(at, self._keys.size - 1)]
+                                         == keys) if self._keys.size else np.zeros(
+            keys.size, dtype=bool)
+        new = first[~seen]
+        if not new.size:
+            return 0
+        if set(attributes) != set(self.attributes) and len(self):
+            raise RegistrationError(f'a drive map with attributes {sorted(self.attributes)} '
+                                    f'was given {sorted(attributes)}')
+        self.points_xyz = np.concatenate([self.points_xyz, points[new]])
+        self.nu = np.concatenate([self.nu, np.asarray(nu, dtype=np.float32)[new]])
+        for name, values in attributes.items():
+            old = self.attributes.get(name, np.zeros(0, dtype=np.asarray(values).dtype))
+            self.attributes[name] = np.concatenate([old, np.asarray(values)[new]])
+        self._keys = np.sort(np.concatenate([self._keys, keys[~seen]]))
+        return int(new.size)
+
+
+@dataclass
+class PriorMap:
+    """A map of an earlier day, ready to match against: points (map frame), normals, index."""
+
+    points_xyz: np.ndarray
+    nu: np.ndarray
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    target: MapTarget | None = None
+
+    def __post_init__(self) -> None:
+        self.points_xyz = np.ascontiguousarray(self.points_xyz, dtype=np.float64)
+        if self.points_xyz.shape[0] < MIN_POINTS:
+            raise RegistrationError(f'a prior map needs at least {MIN_POINTS} points, it has '
+                                    f'{self.points_xyz.shape[0]}')
+        if self.target is None:
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points_xyz))
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
+            self.target = MapTarget(self.points_xyz, np.asarray(cloud.normals))
+
+    @classmethod
+    def from_drive_map(cls, drive_map: DriveMap) -> 'PriorMap':
+        """The map a drive left, as it is."""
+        return cls(drive_map.points_xyz, drive_map.nu, dict(drive_map.attributes))
+
+    def selected(self, keep: np.ndarray) -> 'PriorMap':
+        """The map of the points `keep` (bool mask), normals kept as the whole map gave them."""
+        keep = np.asarray(keep, dtype=bool)
+        target = MapTarget(self.points_xyz[keep], self.target.normals[keep])
+        return PriorMap(self.points_xyz[keep], self.nu[keep],
+                        {k: v[keep] for k, v in self.attributes.items()}, target)
+
+
+@dataclass
+class LocalisationResult:
+    """One scan localised: its pose in the map frame, the map -> odom transform, the fit."""
+
+    T_map_sensor: np.ndarray
+    T_map_odom: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    status: str  # 'localised', 'not_fitted' (odometry carried the pose), 'too_few_points'
+    correction_m: float = 0.0  # how far the match moved the prediction
+
+
+class Localiser:
+    """Each scan matched to a prior map from the odometry's prediction."""
+
+    def __init__(self, prior: PriorMap, T_map_odom: np.ndarray) -> None:
+        self.prior = prior
+        self.T_map_odom = np.array(T_map_odom, dtype=float)
+        self.n_localised = 0
+        self.n_not_fitted = 0
+
+    def localise(self, points_sensor: np.ndarray, T_odom_sensor: np.ndarray,
+                 keep: np.ndarray | None = None) -> LocalisationResult:
+        """Match the scan `points_sensor` (deskewed to its stamp) whose odometry pose is
+        `T_odom_sensor`; `keep` (bool per point) restricts the points matched."""
+        points = np.asarray(points_sensor, dtype=np.float64).reshape(-1, 3)
+        source_index = voxel_downsample_indices(points, SOURCE_VOXEL_M)
+        if keep is not None:
+            source_index = source_index[np.asarray(keep, dtype=bool)[source_index]]
+        T_pred = self.T_map_odom @ T_odom_sensor
+        if source_index.size < MIN_POINTS:
+            self.n_not_fitted += 1
+            return LocalisationResult(T_pred, self.T_map_odom.copy(), 0.0, 0.0,
+                                      'too_few_points')
+        fit = point_to_plane_icp(np.ascontiguousarray(points[source_index]), self.prior.target,
+                                 T_pred, GATE_M, ITERATIONS, KERNEL_M)
+        delta = invert_transform(T_pred) @ fit.transformation
+        moved_m = float(np.linalg.norm(delta[:3, 3]))
+        turned_rad = float(np.arccos(np.clip(0.5 * (np.trace(delta[:3, :3]) - 1.0), -1.0, 1.0)))
+        trusted = (np.all(np.isfinite(fit.transformation)) and fit.fitness >= MIN_FITNESS
+                   and moved_m <= MAX_CORRECTION_M and turned_rad <= MAX_CORRECTION_RAD)
+        if not trusted:
+            self.n_not_fitted += 1
+            return LocalisationResult(T_pred, self.T_map_odom.copy(), fit.fitness,
+                                      fit.inlier_rmse, 'not_fitted', moved_m)
+        self.T_map_odom = fit.transformation @ invert_transform(T_odom_sensor)
+        self.n_localised += 1
+        return LocalisationResult(fit.transformation, self.T_map_odom.copy(), fit.fitness,
+                                  fit.inlier_rmse, 'localised', moved_m)
+
