@@ -29,8 +29,17 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.core.bounds_watch import BoundsWatch
 from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.deferred import Deferred, resolved
-from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transform_points
+from gft_odom.core.geometry import (
+    invert_transform,
+    rotation_vector,
+    rpy_transform,
+    sensor_to_base_poses,
+    transform_points,
+)
+from gft_odom.core.localisation import DriveMap
 from gft_odom.core.registration import ScanRegistration
+from gft_odom.core.registration.local_map import KEYFRAME_ROTATION_RAD
+from gft_odom.core.registration.scan_registration import TRUSTED_STATUSES
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
 from gft_odom.core.trajectory import Trajectory, TrajectoryRecorder
@@ -179,6 +188,11 @@ class OdometryPipeline:
         # What the last scan left for `update_map`: (its deferred frequencies or None, its
         # timings).
         self._left_after_pose: tuple | None = None
+        # What the last scan leaves for the drive map: (status, pose, kept cloud, frequencies).
+        self._left_for_drive_map: tuple | None = None
+        # Everything the drive saw (what ~/save_map writes), and where it last took a scan.
+        self.drive_map = DriveMap()
+        self._drive_map_pose: np.ndarray | None = None
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -192,6 +206,7 @@ class OdometryPipeline:
         if len(self._recorded):
             self.finished_segments.append(self.sensor_trajectory())
         self._recorded.clear()
+        self.drive_map, self._drive_map_pose = DriveMap(), None  # a new odom frame
 
     def screen(self, scan: Scan) -> Rejection | None:
         """Why `scan` would be rejected now, or None (no state changes)."""
@@ -318,6 +333,7 @@ class OdometryPipeline:
         timings_s = {'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
                      'pipeline': time.perf_counter() - t0}
         self._left_after_pose = (after_pose, timings_s)
+        self._left_for_drive_map = (reg.status, reg.T_world_sensor, kept, kept_freqs)
         return FrameResult(
             stamp_ns=pose_stamp_ns, T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
@@ -413,30 +429,40 @@ class OdometryPipeline:
             except SpectralError as exc:  # the pose is out: the scan is not lost for this
                 log.warning('%s; its keyframe, if any, is mapped without them', exc)
             timings_s['filter'] = after_pose.seconds
+        self._add_to_drive_map()
         timings_s['map_update'] = self.registration.update_map()
         return time.perf_counter() - t0
 
-    def map_snapshot(self, latest: FrameResult | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-        """The registration's current map in the odom frame (REP 105, as the trajectory):
-        (points_xyz (N, 3) float64, nu (N,) float32). The map keeps no frequencies: a point
-        takes the frequency of the nearest point of `latest` (the last frame, its filtered
-        cloud) within one map voxel, NaN elsewhere or without `latest`. Paper mode has no
-        map: its reference, the last trusted scan, is returned."""
-        from scipy.spatial import cKDTree
-        reg = self.registration
+    def _add_to_drive_map(self) -> None:
+        """The last scan into the drive map, deskewed as the odometry's map got it, when it was
+        trusted and is a keyframe's distance or turn from the last one taken."""
+        left, self._left_for_drive_map = self._left_for_drive_map, None
+        if left is None:
+            return
+        status, T_world_sensor, kept, kept_freqs = left
+        if status not in TRUSTED_STATUSES or not len(kept):
+            return
+        last = self._drive_map_pose
+        if last is not None:
+            step = invert_transform(last) @ T_world_sensor
+            if (np.linalg.norm(step[:3, 3]) < self.config.registration.keyframe_distance_m
+                    and np.linalg.norm(rotation_vector(step[:3, :3])) < KEYFRAME_ROTATION_RAD):
+                return
+        self._drive_map_pose = T_world_sensor
+        try:
+            nu = None if kept_freqs is None else kept_freqs.get()[0]
+        except SpectralError:
+            nu = None
+        points = self.registration.deskewed_like_last(kept.points_xyz)
+        self.drive_map.add(transform_points(T_world_sensor, points), nu)
+
+    def map_snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """Everything this run saw (the drive map: a scan every keyframe distance or turn,
+        deskewed, one point per map voxel) in the odom frame (REP 105, as the trajectory):
+        (points_xyz (N, 3) float64, nu (N,) float32, NaN where a point has none)."""
         self.update_map()
-        points = np.array(reg.reference_points_world(), dtype=np.float64).reshape(-1, 3)
-        nu = np.full(points.shape[0], np.nan, dtype=np.float32)
-        if (latest is not None and latest.nu is not None and len(latest.filtered)
-                and points.shape[0]):
-            seen = transform_points(latest.T_world_sensor,
-                                    reg.deskewed_like_last(latest.filtered.points_xyz))
-            dist, index = cKDTree(seen).query(points, distance_upper_bound=max(
-                self.config.registration.map_voxel_size_m, 1e-3))
-            near = np.isfinite(dist)
-            nu[near] = latest.nu[index[near]]
-        return transform_points(self.T_base_sensor, points), nu
+        return (transform_points(self.T_base_sensor, self.drive_map.points_xyz),
+                self.drive_map.nu.copy())
 
     def sensor_trajectory(self) -> Trajectory:
         """T_world_sensor of every registered scan (world = first sensor frame)."""

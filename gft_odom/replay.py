@@ -105,7 +105,6 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     stages: dict[str, list[float]] = {}
     map_xyz, map_nu = [], []
     rejected: Counter[str] = Counter()
-    last: FrameResult | None = None
     with ScanBagReader(list(bag_paths), topic=topic) as reader:
         total = scan_count(reader, max_scans)
         for i, (scan, t_decode) in enumerate(timed_scans(reader, total)):
@@ -126,7 +125,6 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             points_in.append(result.n_points_in)
             points_kept.append(result.n_points_kept)
             statuses.append(result.status)
-            last = result
             _sample_map(result, rng, map_xyz, map_nu)
         skipped = getattr(reader, 'skipped', 0)
     if not statuses:
@@ -152,7 +150,7 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
     # Said once in the log when it happened; kept with the results.
     replay.metrics['motion_bounds'] = pipeline.bounds_watch.message
     if save_map_dir is not None:
-        points, nu = pipeline.map_snapshot(last)
+        points, nu = pipeline.map_snapshot()
         pcd, tum = write_map(save_map_dir, points, nu, config.spectral.n_bands,
                              pipeline.base_trajectory())
         replay.metrics['saved_map'] = {'pcd': str(pcd), 'trajectory': str(tum),

@@ -38,47 +38,85 @@ MIN_FITNESS = 0.3
 MAX_CORRECTION_M = 0.5
 MAX_CORRECTION_RAD = 0.1
 MIN_POINTS = 100
+# A drive map stops growing here (~80 MB; a 2 km day at 0.3 m voxels is about 3 M points).
+MAX_DRIVE_MAP_POINTS = 5_000_000
 
 
 class DriveMap:
     """The points a drive saw, one per voxel (the first to arrive), in the odometry's world
-    frame, with their frequency (NaN: none) and optional named per-point attributes."""
+    frame, with their frequency (NaN: none) and optional named per-point attributes.
 
-    def __init__(self, voxel_m: float = MAP_VOXEL_M) -> None:
+    Buffers double as they fill and the voxel keys stay sorted, so adding a keyframe costs a
+    copy of the keys, not of the map: a 2 km day (about 3 M voxels) stays a few ms a keyframe.
+    """
+
+    def __init__(self, voxel_m: float = MAP_VOXEL_M, max_points: int = MAX_DRIVE_MAP_POINTS
+                 ) -> None:
         self.voxel_m = float(voxel_m)
+        self.max_points = int(max_points)
         self._keys = np.zeros(0, dtype=np.int64)  # sorted
-        self.points_xyz = np.zeros((0, 3))
-        self.nu = np.zeros(0, dtype=np.float32)
-        self.attributes: dict[str, np.ndarray] = {}
+        self._points = np.zeros((0, 3))
+        self._nu = np.zeros(0, dtype=np.float32)
+        self._attributes: dict[str, np.ndarray] = {}
+        self._n = 0
+        self.full = False  # max_points reached: later points are not kept
 
     def __len__(self) -> int:
-        return int(self.points_xyz.shape[0])
+        return self._n
+
+    @property
+    def points_xyz(self) -> np.ndarray:
+        """(N, 3) world."""
+        return self._points[:self._n]
+
+    @property
+    def nu(self) -> np.ndarray:
+        """(N,) float32 graph frequency, NaN where none."""
+        return self._nu[:self._n]
+
+    @property
+    def attributes(self) -> dict[str, np.ndarray]:
+        """name -> (N,) values."""
+        return {name: values[:self._n] for name, values in self._attributes.items()}
 
     def add(self, points_world: np.ndarray, nu: np.ndarray | None = None,
             **attributes: np.ndarray) -> int:
         """Add the points of voxels not yet seen; returns how many were new."""
         points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
-        if nu is None:
-            nu = np.full(points.shape[0], np.nan, dtype=np.float32)
+        if self._n and set(attributes) != set(self._attributes):
+            raise RegistrationError(f'a drive map with attributes {sorted(self._attributes)} '
+                                    f'was given {sorted(attributes)}')
         first = voxel_downsample_indices(points, self.voxel_m)
         keys = voxel_keys(points[first], self.voxel_m)
         at = np.searchsorted(self._keys, keys)
-        seen = (at < self._keys.size) & (self._keys[np.minimum(at, self._keys.size - 1)]
-                                         == keys) if self._keys.size else np.zeros(
-            keys.size, dtype=bool)
-        new = first[~seen]
+        seen = np.zeros(keys.size, dtype=bool)
+        if self._keys.size:
+            seen = self._keys[np.minimum(at, self._keys.size - 1)] == keys
+        room = self.max_points - self._n
+        new = first[~seen][:max(room, 0)]
+        self.full = self.full or new.size < int((~seen).sum())
         if not new.size:
             return 0
-        if set(attributes) != set(self.attributes) and len(self):
-            raise RegistrationError(f'a drive map with attributes {sorted(self.attributes)} '
-                                    f'was given {sorted(attributes)}')
-        self.points_xyz = np.concatenate([self.points_xyz, points[new]])
-        self.nu = np.concatenate([self.nu, np.asarray(nu, dtype=np.float32)[new]])
+        self._grow(self._n + new.size, attributes)
+        end = self._n + new.size
+        self._points[self._n:end] = points[new]
+        self._nu[self._n:end] = np.nan if nu is None else np.asarray(nu, np.float32)[new]
         for name, values in attributes.items():
-            old = self.attributes.get(name, np.zeros(0, dtype=np.asarray(values).dtype))
-            self.attributes[name] = np.concatenate([old, np.asarray(values)[new]])
-        self._keys = np.sort(np.concatenate([self._keys, keys[~seen]]))
+            self._attributes[name][self._n:end] = np.asarray(values)[new]
+        self._n = end
+        new_keys = np.sort(keys[~seen][:new.size])
+        self._keys = np.insert(self._keys, np.searchsorted(self._keys, new_keys), new_keys)
         return int(new.size)
+
+    def _grow(self, size: int, attributes: dict[str, np.ndarray]) -> None:
+        if size <= self._points.shape[0]:
+            return
+        capacity = max(size, 2 * self._points.shape[0], 4096)
+        self._points = np.resize(self._points, (capacity, 3))
+        self._nu = np.resize(self._nu, capacity)
+        for name, values in attributes.items():
+            old = self._attributes.get(name, np.zeros(0, dtype=np.asarray(values).dtype))
+            self._attributes[name] = np.resize(old, capacity)
 
 
 @dataclass

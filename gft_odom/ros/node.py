@@ -365,7 +365,7 @@ class FilterOdomNode(AdaptiveInput, Node):
         stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S_%f')
         folder = FilePath(self.config.node.save_map_dir).expanduser() / f'map_{stamp}'
         try:
-            points, nu = self.pipeline.map_snapshot(self.last_result)
+            points, nu = self.pipeline.map_snapshot()
             trajectory = self.trajectory()
             pcd, tum = write_map(folder, points, nu, self.config.spectral.n_bands, trajectory)
         except (OSError, GftOdomError) as exc:

@@ -23,7 +23,7 @@ def test_the_drive_map_keeps_the_first_point_of_each_voxel_with_its_attributes()
                                                       [9.1, 0.2, 0.2]])
     np.testing.assert_allclose(drive_map.nu, [0.5, 0.1, 0.3])
     np.testing.assert_array_equal(drive_map.attributes['surface'], [1, 2, 0])
-    assert drive_map.add(later) == 0  # nothing new
+    assert drive_map.add(later, surface=np.zeros(3, dtype=int)) == 0  # nothing new
     with pytest.raises(RegistrationError):
         drive_map.add(np.array([[20.0, 0.0, 0.0]]), surface=np.array([1]), colour=np.array([3]))
 
@@ -82,3 +82,14 @@ def test_a_selected_map_and_scan_match_only_the_points_kept():
     result = localiser.localise(scan, np.eye(4), keep=keep)
     assert result.status == 'localised'
     assert np.linalg.norm(result.T_map_sensor[:3, 3] - T_map_sensor[:3, 3]) < 0.05
+
+
+def test_the_drive_map_grows_past_its_buffers_and_stops_at_its_cap():
+    rng = np.random.default_rng(0)
+    drive_map = DriveMap(voxel_m=0.5, max_points=6000)
+    for k in range(4):  # 4 x 2500 distinct voxels: past the first buffer, then the cap
+        points = np.c_[np.arange(2500) * 1.0 + 10_000 * k, rng.uniform(0, 0.1, (2500, 2))]
+        drive_map.add(points, np.full(2500, k, dtype=np.float32))
+    assert len(drive_map) == 6000 and drive_map.full
+    np.testing.assert_array_equal(np.bincount(drive_map.nu.astype(int)), [2500, 2500, 1000])
+    assert drive_map.add(np.array([[1e6, 0.0, 0.0]])) == 0
