@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
-from gft_odom.core.geometry import invert_transform, rpy_transform, transform_points
+from gft_odom.core.geometry import invert_transform, rpy_transform
 from gft_odom.core.localisation import DriveMap, Localiser, PriorMap
 from gft_odom.pipeline import OdometryPipeline
 from gft_odom.sim.later_day import simulate_day
@@ -40,7 +40,6 @@ from gft_odom.sim.simulator import SimConfig
 
 RESULTS = Path(__file__).parent / 'results' / 'teach_repeat.json'
 START_ERROR = rpy_transform((0.2, -0.15, 0.0), (0.0, 0.0, 0.03))
-MAP_EVERY_M, MAP_EVERY_RAD = 1.0, 0.2
 BIN_M = 50.0
 TRUSTED = ('first', 'ok', 'recovered')
 
@@ -65,23 +64,16 @@ def drive(sim, n_scans: int | None, config: GftOdomConfig):
 
 
 def teach(sim, n_scans, config) -> tuple[DriveMap, np.ndarray, float]:
-    """The map day's map (odometry world frame), T_map_sim, and the map day's ATE-free
-    end error [m] (how far its odometry drifted: the map's own error)."""
-    drive_map, last, T_map_sim, error = DriveMap(), None, None, 0.0
+    """The map day's map (odometry world frame, as the pipeline's drive map takes it, with
+    the surface class), T_map_sim, and how far the map day's odometry ended from the truth."""
+    drive_map, T_map_sim, error = DriveMap(), None, 0.0
+    every_m = config.registration.keyframe_distance_m
     for result, points, surface, truth in drive(sim, n_scans, config):
         if T_map_sim is None:
             T_map_sim = result.T_world_sensor @ invert_transform(truth)
         error = float(np.linalg.norm((T_map_sim @ truth)[:3, 3] - result.T_world_sensor[:3, 3]))
-        if result.status not in TRUSTED:
-            continue
-        if last is not None:
-            step = invert_transform(last) @ result.T_world_sensor
-            angle = np.arccos(np.clip(0.5 * (np.trace(step[:3, :3]) - 1.0), -1.0, 1.0))
-            if np.linalg.norm(step[:3, 3]) < MAP_EVERY_M and angle < MAP_EVERY_RAD:
-                continue
-        last = result.T_world_sensor
-        nu = result.nu if result.nu is not None else None
-        drive_map.add(transform_points(result.T_world_sensor, points), nu, surface=surface)
+        if result.status in TRUSTED and drive_map.due(result.T_world_sensor, every_m):
+            drive_map.add_scan(result.T_world_sensor, points, result.nu, surface=surface)
     return drive_map, T_map_sim, error
 
 

@@ -34,3 +34,7 @@ class RegistrationError(GftOdomError):
 
 class SimulationError(GftOdomError):
     """The orchard simulator got an invalid request."""
+
+
+class MapError(GftOdomError):
+    """A map to localise in is missing, unreadable, empty or in another frame."""

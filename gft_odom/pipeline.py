@@ -15,8 +15,6 @@ outlier. So no stamp can lock the later valid scans out.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import logging
 import time
 from collections import Counter
@@ -30,15 +28,17 @@ from gft_odom.core.bounds_watch import BoundsWatch
 from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.deferred import Deferred, resolved
 from gft_odom.core.geometry import (
-    invert_transform,
-    rotation_vector,
     rpy_transform,
     sensor_to_base_poses,
     transform_points,
 )
 from gft_odom.core.localisation import DriveMap
+from gft_odom.core.memory import (
+    TRIM_AFTER_POINTS,
+    TRIMS_AFTER_A_LARGE_SCAN,
+    release_free_memory,
+)
 from gft_odom.core.registration import ScanRegistration
-from gft_odom.core.registration.local_map import KEYFRAME_ROTATION_RAD
 from gft_odom.core.registration.scan_registration import TRUSTED_STATUSES
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
@@ -59,31 +59,6 @@ DEGENERATE_STATUS = 'fallback_degenerate'
 REJECTION_REASONS = ('empty', 'degenerate', 'out_of_order', 'clock_jump')
 # Accepted scans that restarted the clock: counted in status_counts beside the statuses.
 CLOCK_RESET = 'clock_reset'
-# After a scan this big, give the freed heap back to the OS at the next call: glibc keeps it
-# otherwise (a 3-million-point scan left +37 MB RSS for good, docs/robustness.md).
-TRIM_AFTER_POINTS = 500_000
-# ... and at each call for 2 s at 10 Hz after it: freeing its big blocks raises glibc's mmap
-# threshold, so the next scans' blocks come from the heap and stay there until a trim (with
-# deskew, one trim left +12 MB against a normal scan, three +12 MB, twenty +3.5 MB; a trim
-# costs ~0.01 ms).
-TRIMS_AFTER_A_LARGE_SCAN = 20
-# A scan whose work began this long after the work before it ended did not wait behind it
-# (the node's callback, or a caller's decoding, takes a few ms in between).
-
-
-def _malloc_trim():
-    """glibc's malloc_trim(0) when available (a no-op elsewhere)."""
-    name = ctypes.util.find_library('c')
-    try:
-        trim = ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):
-        trim = None
-    return (lambda: trim(0)) if trim is not None else (lambda: 0)
-
-
-release_free_memory = _malloc_trim()
-
-
 @dataclass(frozen=True)
 class Rejection:
     """Why a scan was not registered: a reason from REJECTION_REASONS and a log line."""
@@ -192,7 +167,6 @@ class OdometryPipeline:
         self._left_for_drive_map: tuple | None = None
         # Everything the drive saw (what ~/save_map writes), and where it last took a scan.
         self.drive_map = DriveMap()
-        self._drive_map_pose: np.ndarray | None = None
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -206,7 +180,7 @@ class OdometryPipeline:
         if len(self._recorded):
             self.finished_segments.append(self.sensor_trajectory())
         self._recorded.clear()
-        self.drive_map, self._drive_map_pose = DriveMap(), None  # a new odom frame
+        self.drive_map = DriveMap()  # a new odom frame
 
     def screen(self, scan: Scan) -> Rejection | None:
         """Why `scan` would be rejected now, or None (no state changes)."""
@@ -440,21 +414,15 @@ class OdometryPipeline:
         if left is None:
             return
         status, T_world_sensor, kept, kept_freqs = left
-        if status not in TRUSTED_STATUSES or not len(kept):
+        if status not in TRUSTED_STATUSES or not len(kept) or not self.drive_map.due(
+                T_world_sensor, self.config.registration.keyframe_distance_m):
             return
-        last = self._drive_map_pose
-        if last is not None:
-            step = invert_transform(last) @ T_world_sensor
-            if (np.linalg.norm(step[:3, 3]) < self.config.registration.keyframe_distance_m
-                    and np.linalg.norm(rotation_vector(step[:3, :3])) < KEYFRAME_ROTATION_RAD):
-                return
-        self._drive_map_pose = T_world_sensor
         try:
             nu = None if kept_freqs is None else kept_freqs.get()[0]
         except SpectralError:
             nu = None
         points = self.registration.deskewed_like_last(kept.points_xyz)
-        self.drive_map.add(transform_points(T_world_sensor, points), nu)
+        self.drive_map.add_scan(T_world_sensor, points, nu)
 
     def map_snapshot(self) -> tuple[np.ndarray, np.ndarray]:
         """Everything this run saw (the drive map: a scan every keyframe distance or turn,

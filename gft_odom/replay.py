@@ -20,15 +20,16 @@ import numpy as np
 
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
+from gft_odom.core.localisation import MapLocalisation, PriorMap
 from gft_odom.core.metrics import TrajectoryEvaluator, stamp_audit
 from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
-from gft_odom.errors import BagError, GftOdomError, GroundTruthError
+from gft_odom.errors import BagError, GftOdomError, GroundTruthError, MapError, RegistrationError
 from gft_odom.io.atomic import make_temp_dir, replace, write_text_atomic
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
-from gft_odom.io.pcd import frequency_cloud, write_pcd
+from gft_odom.io.pcd import PcdError, frequency_cloud, read_pcd, read_pcd_frame_id, write_pcd
 from gft_odom.io.tum import write_tum
 from gft_odom.params_file import write_params_file
 from gft_odom.pipeline import FrameResult, OdometryPipeline
@@ -57,6 +58,10 @@ class ReplayResult:
     rejected: dict[str, int] = field(default_factory=dict)
     ground_truth: Trajectory | None = None
     ground_truth_is_gps: bool = False
+    # With a map to localise in: T_map_sensor of every scan localised or carried by the
+    # odometry from the last fit, and how many of each (localised, not_fitted, ...).
+    map_trajectory: Trajectory | None = None
+    localisation_counts: dict[str, int] = field(default_factory=dict)
     # (n_scans,) the work after each pose (`OdometryPipeline.update_map`: the frequencies
     # when they come after it, a keyframe's map rebuild); None when the method does it
     # inside its time to the pose.
@@ -93,17 +98,20 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                max_scans: int | None = None,
                progress: Callable[[int, int], None] | None = None,
                save_map_dir: str | Path | None = None,
-               pipeline: OdometryPipeline | None = None) -> ReplayResult:
+               pipeline: OdometryPipeline | None = None,
+               localisation: MapLocalisation | None = None) -> ReplayResult:
     """Replay the scans of `bag_paths` through the pipeline; evaluate against `gt_path`.
     `save_map_dir`: write the final map and the trajectory there (`write_map`), as the
     node's `~/save_map` does. `pipeline`: a study's own (a subclass, built from `config`);
-    None: `OdometryPipeline(config)`."""
+    None: `OdometryPipeline(config)`. `localisation`: also localise every scan in its map
+    (its start set with `MapLocalisation.start_at`)."""
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
     pipeline = pipeline if pipeline is not None else OdometryPipeline(config)
     rng = np.random.default_rng(0)
     latency, map_update, stamps, points_in, points_kept, statuses = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
     map_xyz, map_nu = [], []
+    map_stamps, map_poses, located = [], [], Counter()
     rejected: Counter[str] = Counter()
     with ScanBagReader(list(bag_paths), topic=topic) as reader:
         total = scan_count(reader, max_scans)
@@ -116,6 +124,13 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                 rejected[result.rejection.reason] += 1
                 continue
             latency.append(t_decode + result.timings_s['pipeline'])
+            if localisation is not None:
+                fit = localisation.localise(pipeline.registration.deskewed_like_last(
+                    result.filtered.points_xyz), result.T_world_sensor)
+                if fit is not None:
+                    located[fit.status] += 1
+                    map_stamps.append(result.stamp_ns)
+                    map_poses.append(fit.T_map_sensor)
             # The work after the pose, as the node does it (frequencies left for after the
             # pose, a keyframe's map rebuild): busy time; its stages go into timings_s.
             map_update.append(pipeline.update_map())
@@ -145,14 +160,17 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
         map_nu=np.concatenate(map_nu) if map_nu else np.zeros(0), skipped_messages=skipped,
         rejected=dict(rejected), ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path),
-        map_update_s=np.asarray(map_update), scan_stamps_ns=np.asarray(stamps, dtype=np.int64))
+        map_update_s=np.asarray(map_update), scan_stamps_ns=np.asarray(stamps, dtype=np.int64),
+        map_trajectory=(Trajectory(np.asarray(map_stamps, dtype=np.int64), np.asarray(map_poses))
+                        if map_stamps else None),
+        localisation_counts=dict(located))
     replay.metrics = summarize(replay, config)
     # Said once in the log when it happened; kept with the results.
     replay.metrics['motion_bounds'] = pipeline.bounds_watch.message
     if save_map_dir is not None:
         points, nu = pipeline.map_snapshot()
         pcd, tum = write_map(save_map_dir, points, nu, config.spectral.n_bands,
-                             pipeline.base_trajectory())
+                             pipeline.base_trajectory(), config.node.odom_frame)
         replay.metrics['saved_map'] = {'pcd': str(pcd), 'trajectory': str(tum),
                                        'points': int(points.shape[0])}
         log.info('map of %d points written to %s, trajectory to %s', points.shape[0], pcd, tum)
@@ -259,7 +277,22 @@ def summarize(replay: ReplayResult, config: GftOdomConfig) -> dict:
             raise GroundTruthError(f'cannot evaluate against the ground truth: {exc}') from exc
         metrics['ground_truth_frame'] = 'gps_antenna' if replay.ground_truth_is_gps else 'sensor'
         metrics.update(stamp_audit_metrics(estimate, replay.ground_truth, config))
+    if replay.map_trajectory is not None:
+        metrics['localisation'] = _localisation_metrics(replay, config)
     return metrics
+
+
+def _localisation_metrics(replay: ReplayResult, config: GftOdomConfig) -> dict:
+    """How many scans were localised, and (with ground truth) the map-frame trajectory's ATE."""
+    out: dict = {'status_counts': dict(sorted(replay.localisation_counts.items()))}
+    if replay.ground_truth is not None:
+        in_map = replay.map_trajectory
+        if replay.ground_truth_is_gps:
+            in_map = in_map.with_body_offset(config.ground_truth.T_lidar_gps())
+        result = TrajectoryEvaluator.from_config(config.evaluation).evaluate(
+            in_map, replay.ground_truth)
+        out.update({k: v for k, v in result.items() if k.startswith(('ate_', 'end_error'))})
+    return out
 
 
 def stamp_audit_metrics(estimate: Trajectory, ground_truth: Trajectory,
@@ -280,16 +313,45 @@ MAP_TRAJECTORY_FILE = 'trajectory_tum.txt'
 
 
 def write_map(folder: str | Path, points_xyz: np.ndarray, nu: np.ndarray, n_bands: int,
-              trajectory: Trajectory) -> tuple[Path, Path]:
+              trajectory: Trajectory, frame_id: str = 'odom') -> tuple[Path, Path]:
     """The map as a binary PCD (x y z intensity frequency band; frequency NaN and band 0
-    where unknown) and the trajectory as TUM, both in the odom frame, into `folder`:
-    (pcd path, TUM path). `OdometryPipeline.map_snapshot` gives the points and frequencies."""
+    where unknown; its header names `frame_id`) and the trajectory as TUM, both in the odom
+    frame, into `folder`: (pcd path, TUM path). `OdometryPipeline.map_snapshot` gives the
+    points and frequencies; `read_prior_map` reads the map back to localise in it."""
     folder = Path(folder).expanduser()
     folder.mkdir(parents=True, exist_ok=True)
     nu = np.asarray(nu, dtype=np.float32)
-    write_pcd(folder / MAP_FILE, frequency_cloud(points_xyz, None, nu, band_of_nu(nu, n_bands)))
+    write_pcd(folder / MAP_FILE, frequency_cloud(points_xyz, None, nu, band_of_nu(nu, n_bands)),
+              frame_id=frame_id)
     write_tum(folder / MAP_TRAJECTORY_FILE, trajectory)
     return folder / MAP_FILE, folder / MAP_TRAJECTORY_FILE
+
+
+def read_prior_map(path: str | Path, frame_id: str = 'odom') -> PriorMap:
+    """A map `write_map` wrote (`~/save_map`, `replay --save-map`), ready to localise in.
+    MapError names what is wrong: no such file, not a PCD, no points, or points in another
+    frame than `frame_id` (a map is saved in its run's odom frame)."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise MapError(f'map file {path} does not exist')
+    try:
+        cloud = read_pcd(path)
+        frame = read_pcd_frame_id(path)
+    except PcdError as exc:
+        raise MapError(f'map file {path} cannot be read: {exc}') from None
+    if frame != frame_id:
+        raise MapError(f'map file {path} is in frame {frame!r}, not {frame_id!r}: a map saved '
+                       "by ~/save_map or replay --save-map is in its run's odom frame")
+    if not {'x', 'y', 'z'} <= set(cloud.dtype.names or ()):
+        raise MapError(f'map file {path} has no x, y, z fields')
+    points = np.column_stack([cloud['x'], cloud['y'], cloud['z']]).astype(np.float64)
+    nu = (cloud['frequency'].astype(np.float32) if 'frequency' in cloud.dtype.names
+          else np.full(points.shape[0], np.nan, dtype=np.float32))
+    finite = np.isfinite(points).all(axis=1)
+    try:
+        return PriorMap(points[finite], nu[finite])
+    except RegistrationError as exc:
+        raise MapError(f'map file {path}: {exc}') from None
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -311,11 +373,14 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
     names = {
         'trajectory': 'trajectory_tum.txt',
         'sensor_trajectory': 'trajectory_sensor_tum.txt',
+        'map_trajectory': 'trajectory_map_tum.txt',
         'config': 'config.yaml',
         'trajectory_png': 'trajectory.png',
         'map_png': 'map.png',
         'metrics': 'metrics.json',  # last: its presence marks a complete folder
     }
+    if replay.map_trajectory is None:
+        del names['map_trajectory']
     if not figures:
         del names['trajectory_png'], names['map_png']
     elif replay.map_points_world is None:  # through the node: no per-scan clouds kept
@@ -331,6 +396,8 @@ def write_results(replay: ReplayResult, config: GftOdomConfig, out_dir: str | Pa
         tmp = {key: partial / name for key, name in names.items()}
         write_tum(tmp['trajectory'], replay.base_trajectory)
         write_tum(tmp['sensor_trajectory'], replay.sensor_trajectory)
+        if 'map_trajectory' in tmp:
+            write_tum(tmp['map_trajectory'], replay.map_trajectory)
         write_params_file(tmp['config'], config,
                           header='Effective configuration of this run (ROS params-file format).')
         if figures:

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from gft_odom.core.geometry import invert_transform
-from gft_odom.core.registration.local_map import NORMAL_NEIGHBOURS
+from gft_odom.core.geometry import invert_transform, rotation_vector, transform_points
+from gft_odom.core.registration.local_map import KEYFRAME_ROTATION_RAD, NORMAL_NEIGHBOURS
 from gft_odom.core.registration.matching import MapTarget, point_to_plane_icp
 from gft_odom.core.registration.voxels import voxel_downsample_indices, voxel_keys
 from gft_odom.errors import RegistrationError
@@ -60,6 +60,7 @@ class DriveMap:
         self._attributes: dict[str, np.ndarray] = {}
         self._n = 0
         self.full = False  # max_points reached: later points are not kept
+        self._last_scan_pose: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self._n
@@ -78,6 +79,21 @@ class DriveMap:
     def attributes(self) -> dict[str, np.ndarray]:
         """name -> (N,) values."""
         return {name: values[:self._n] for name, values in self._attributes.items()}
+
+    def due(self, T_world_sensor: np.ndarray, every_m: float) -> bool:
+        """Whether a scan at `T_world_sensor` is `every_m` or a keyframe's turn from the last
+        scan added (`add_scan`): the map takes a scan where the odometry takes a keyframe."""
+        if self._last_scan_pose is None:
+            return True
+        step = invert_transform(self._last_scan_pose) @ T_world_sensor
+        return bool(np.linalg.norm(step[:3, 3]) >= every_m or np.linalg.norm(
+            rotation_vector(step[:3, :3])) >= KEYFRAME_ROTATION_RAD)
+
+    def add_scan(self, T_world_sensor: np.ndarray, points_sensor: np.ndarray,
+                 nu: np.ndarray | None = None, **attributes: np.ndarray) -> int:
+        """Add a scan (deskewed, sensor frame) seen from `T_world_sensor`."""
+        self._last_scan_pose = np.array(T_world_sensor, dtype=float)
+        return self.add(transform_points(T_world_sensor, points_sensor), nu, **attributes)
 
     def add(self, points_world: np.ndarray, nu: np.ndarray | None = None,
             **attributes: np.ndarray) -> int:
@@ -201,3 +217,53 @@ class Localiser:
         return LocalisationResult(fit.transformation, self.T_map_odom.copy(), fit.fitness,
                                   fit.inlier_rmse, 'localised', moved_m)
 
+
+
+class MapLocalisation:
+    """Localisation beside the odometry, in its frames (what the node and the replay hold).
+
+    The odometry gives `T_world_sensor` (world: the first sensor frame); its odom frame is
+    the first base frame, so `T_odom_sensor = T_base_sensor @ T_world_sensor`. The map is in
+    the odom frame of the run that saved it. Until a pose in the map is set (a parameter,
+    `/initialpose`) nothing is localised.
+    """
+
+    def __init__(self, prior: PriorMap, T_base_sensor: np.ndarray) -> None:
+        self.prior = prior
+        self.T_base_sensor = np.asarray(T_base_sensor, dtype=float)
+        self.localiser: Localiser | None = None
+        self._start: np.ndarray | None = None
+
+    def start_at(self, T_map_base: np.ndarray) -> None:
+        """The robot is at `T_map_base` at the next scan (a start parameter, `/initialpose`)."""
+        self._start = np.asarray(T_map_base, dtype=float)
+
+    def set_pose(self, T_map_base: np.ndarray, T_world_sensor: np.ndarray) -> None:
+        """The robot is at `T_map_base` now, when the odometry's pose is `T_world_sensor`."""
+        T_map_sensor = np.asarray(T_map_base, dtype=float) @ self.T_base_sensor
+        T_map_odom = T_map_sensor @ invert_transform(self.T_base_sensor @ T_world_sensor)
+        self.localiser = Localiser(self.prior, T_map_odom)
+
+    def localise(self, points_sensor: np.ndarray, T_world_sensor: np.ndarray
+                 ) -> LocalisationResult | None:
+        """The scan (deskewed, sensor frame) whose odometry pose is `T_world_sensor`, in the
+        map; None until a pose is set."""
+        if self._start is not None:
+            self.set_pose(self._start, T_world_sensor)
+            self._start = None
+        if self.localiser is None:
+            return None
+        return self.localiser.localise(points_sensor, self.T_base_sensor @ T_world_sensor)
+
+    def base_pose(self, result: LocalisationResult) -> np.ndarray:
+        """T_map_base of a localised scan."""
+        return result.T_map_sensor @ invert_transform(self.T_base_sensor)
+
+
+def planar_pose(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
+    """T of a pose on the ground (x, y, yaw): what an operator gives as a start."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = (x_m, y_m)
+    return T

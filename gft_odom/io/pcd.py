@@ -18,6 +18,8 @@ from gft_odom.io.atomic import write_atomic
 FREQUENCY_CLOUD_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'),
                                   ('intensity', '<f4'), ('frequency', '<f4'), ('band', 'u1')])
 
+# The header comment that names the frame of the points.
+FRAME_COMMENT = '# frame_id'
 # numpy kind -> PCD TYPE letter
 _PCD_TYPE = {'f': 'F', 'u': 'U', 'i': 'I'}
 _NUMPY_KIND = {v: k for k, v in _PCD_TYPE.items()}
@@ -44,8 +46,10 @@ def frequency_cloud(points_xyz: np.ndarray, intensity: np.ndarray | None,
     return cloud
 
 
-def pcd_header(dtype: np.dtype, n_points: int, data: str = 'binary') -> str:
-    """The v0.7 header of an unorganised cloud (HEIGHT 1) of `dtype` records."""
+def pcd_header(dtype: np.dtype, n_points: int, data: str = 'binary',
+               frame_id: str | None = None) -> str:
+    """The v0.7 header of an unorganised cloud (HEIGHT 1) of `dtype` records; `frame_id`, the
+    frame its points are in, goes in a comment line (`# frame_id odom`) PCL ignores."""
     names, sizes, types = [], [], []
     for name in dtype.names:
         field = dtype.fields[name][0]
@@ -54,7 +58,8 @@ def pcd_header(dtype: np.dtype, n_points: int, data: str = 'binary') -> str:
         names.append(name)
         sizes.append(str(field.itemsize))
         types.append(_PCD_TYPE[field.kind])
-    return ('# .PCD v0.7 - Point Cloud Data file format\n'
+    frame = f'{FRAME_COMMENT} {frame_id}\n' if frame_id else ''
+    return ('# .PCD v0.7 - Point Cloud Data file format\n' + frame +
             'VERSION 0.7\n'
             f'FIELDS {" ".join(names)}\n'
             f'SIZE {" ".join(sizes)}\n'
@@ -67,15 +72,31 @@ def pcd_header(dtype: np.dtype, n_points: int, data: str = 'binary') -> str:
             f'DATA {data}\n')
 
 
-def write_pcd(path: str | Path, cloud: np.ndarray) -> None:
+def write_pcd(path: str | Path, cloud: np.ndarray, frame_id: str | None = None) -> None:
     """Write a structured array as a binary little-endian PCD file, atomically."""
     path = Path(path)
     packed = np.ascontiguousarray(cloud, dtype=_little_endian_packed(cloud.dtype))
-    payload = pcd_header(packed.dtype, packed.shape[0]).encode('ascii') + packed.tobytes()
+    payload = (pcd_header(packed.dtype, packed.shape[0], frame_id=frame_id).encode('ascii')
+               + packed.tobytes())
     try:
         write_atomic(path, lambda f: f.write(payload))
     except OSError as exc:
         raise PcdError(f'cannot write {path}: {exc}') from exc
+
+
+def read_pcd_frame_id(path: str | Path) -> str | None:
+    """The frame a PCD written with a `frame_id` says its points are in (None: it does not)."""
+    try:
+        with open(path, 'rb') as f:
+            for _ in range(16):  # the comments come before DATA, at the top
+                line = f.readline().decode('ascii', errors='replace').strip()
+                if line.startswith(FRAME_COMMENT + ' '):
+                    return line[len(FRAME_COMMENT):].strip() or None
+                if line.upper().startswith('DATA'):
+                    break
+    except OSError as exc:
+        raise PcdError(f'cannot read {path}: {exc}') from None
+    return None
 
 
 def read_pcd(path: str | Path) -> np.ndarray:

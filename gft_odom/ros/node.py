@@ -367,7 +367,8 @@ class FilterOdomNode(AdaptiveInput, Node):
         try:
             points, nu = self.pipeline.map_snapshot()
             trajectory = self.trajectory()
-            pcd, tum = write_map(folder, points, nu, self.config.spectral.n_bands, trajectory)
+            pcd, tum = write_map(folder, points, nu, self.config.spectral.n_bands, trajectory,
+                                 self.config.node.odom_frame)
         except (OSError, GftOdomError) as exc:
             response.success = False
             response.message = f'map not saved to {folder}: {exc}'

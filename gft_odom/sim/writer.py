@@ -79,7 +79,9 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
                     storage: str = 'sqlite3', topdown_png: bool = True,
                     progress: Callable[[int], None] | None = None,
                     distance_m: float = 300.0, vary: bool = False,
-                    family: str = 'varied') -> SimulationResult:
+                    family: str = 'varied', day: int = 0, map_route: str | None = None,
+                    canopy: str = 'changed', map_distance_m: float | None = None
+                    ) -> SimulationResult:
     """Simulate `n_scans` sweeps of `scenario` in the orchard of `seed`; write the dataset.
 
     Routes (lawnmower, every_other_row, spiral, out_and_back, edge_lawnmower) drive about
@@ -87,7 +89,9 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
     driving, mount and wind from the seed; the draws go into `sim_metadata.json` beside the
     bag and into the bag (rosbag2 custom_data, a ROS 1 bag a std_msgs/String on
     `METADATA_TOPIC`); `family` 'stress' draws them outside the varied ranges. `progress(k)`
-    is called after each scan with the number of scans done.
+    is called after each scan with the number of scans done. `day` >= 1 (with `vary`): a later
+    day in the block `map_route` drove on day 0 over `map_distance_m` (sim/later_day.py), its
+    canopy `canopy`, its ground truth in the same frame as day 0's.
     Nothing already written is overwritten: an existing bag raises SimulationError.
     """
     from gft_odom.io.bags import BagWriter
@@ -114,8 +118,18 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
     gt_dir = out_dir / 'ground_truth'
     gt_dir.mkdir(parents=True, exist_ok=True)
 
-    sim, variation = ScanSimulator.for_drive(config, scenario, seed, n_scans, distance_m, vary,
-                                             family)
+    canopy_change = None
+    if int(day) > 0:
+        if not vary or family != 'varied':
+            raise SimulationError('a later day is of a varied block: give --vary (not --stress)')
+        from gft_odom.sim.later_day import simulate_day
+        sim, canopy_change = simulate_day(config, seed, map_route or scenario, int(day),
+                                          scenario, canopy, map_distance_m or distance_m,
+                                          distance_m)
+        variation = None
+    else:
+        sim, variation = ScanSimulator.for_drive(config, scenario, seed, n_scans, distance_m,
+                                                 vary, family)
     config = sim.config
     period_s = 1.0 / config.scan_rate_hz
     if n_scans is None:  # the whole route
@@ -126,6 +140,10 @@ def simulate_to_bag(out_dir: str | Path, scenario: str = 'row', n_scans: int | N
         n_scans = int(n_scans)
     orchard = sim.orchard
     metadata = drive_metadata(sim, scenario, seed, n_scans, variation)
+    if canopy_change is not None:
+        metadata['later_day'] = {'day': int(day), 'map_route': map_route or scenario,
+                                 'map_distance_m': map_distance_m or distance_m,
+                                 'canopy': asdict(canopy_change)}
     layout = VELODYNE_XYZIR_ROS1 if config.legacy_fields else VELODYNE_XYZIRT
     log.info('simulating %d scans of %r in orchard seed %d (%d rows, %.0f m long, rows %.1f m '
              'apart, trees %.1f m apart) -> %s', n_scans, scenario, seed, len(orchard.row_v_m),

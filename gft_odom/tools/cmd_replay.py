@@ -37,7 +37,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='write the final map (binary PCD with per-point frequency) and the '
                         "trajectory (TUM), odom frame, as the node's ~/save_map does, into "
                         'DIR (default: <out>/map)')
+    p.add_argument('--map', metavar='PCD',
+                   help='localise every scan in this map (one ~/save_map or --save-map wrote) '
+                        'beside the odometry; writes trajectory_map_tum.txt (map frame)')
+    p.add_argument('--initial-pose', default='0,0,0', metavar='X,Y,YAW',
+                   help='with --map: where base_link is in the map at the first scan '
+                        '(metres, metres, radians; default 0,0,0: where the map run started)')
     add_switches(p)
+
+
+def parse_initial_pose(text: str):
+    """'x,y,yaw' -> T_map_base; ConfigError with the reason."""
+    import math
+
+    from gft_odom.core.localisation import planar_pose
+    from gft_odom.errors import ConfigError
+    try:
+        x, y, yaw = (float(v) for v in text.split(','))
+    except ValueError:
+        raise ConfigError(f'--initial-pose wants x,y,yaw (three numbers), got {text!r}') from None
+    if not all(math.isfinite(v) for v in (x, y, yaw)):
+        raise ConfigError(f'--initial-pose wants finite numbers, got {text!r}')
+    return planar_pose(x, y, yaw)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,6 +81,17 @@ def run(args: argparse.Namespace) -> int:
         extra = {'node_exe': args.node_exe, 'log_path': Path(args.out) / 'node.log'}
     else:
         replay_fn, extra = run_replay, {}
+    if args.map is not None:
+        if args.through_node:
+            from gft_odom.errors import ConfigError
+            raise ConfigError('--map runs in-process; it does not combine with --through-node')
+        from gft_odom.core.localisation import MapLocalisation
+        from gft_odom.pipeline import base_to_sensor
+        from gft_odom.replay import read_prior_map
+        localisation = MapLocalisation(read_prior_map(args.map, config.node.odom_frame),
+                                       base_to_sensor(config))
+        localisation.start_at(parse_initial_pose(args.initial_pose))
+        extra['localisation'] = localisation
     if save_map is not None:
         extra['save_map_dir'] = save_map
     with progress_bar(None, 'replay', enabled=not args.quiet) as update:

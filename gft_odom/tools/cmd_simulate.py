@@ -41,6 +41,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='with --vary: the stress family, every quantity drawn outside the '
                         'varied ranges (other canopy models, spacings, mount, speed, wobble)')
     p.add_argument('--seed', type=int, default=0, help='orchard and noise seed')
+    p.add_argument('--day', type=int, default=0,
+                   help='with --vary: 0 the map day; N >= 1 a later day in the same block '
+                        '(same trees, posts, ground; its own canopy, route and driving)')
+    p.add_argument('--map-route', choices=ROUTES,
+                   help='the route the block was mapped with on day 0 (default: --scenario)')
+    p.add_argument('--map-distance-m', type=float,
+                   help="day 0's distance, which sizes the block (default: --distance-m)")
+    p.add_argument('--canopy', choices=('same', 'grown', 'hedged', 'changed'), default='changed',
+                   help="a later day's canopy against day 0's (changed: grown or hedged)")
     p.add_argument('--out', required=True, help='output directory')
     p.add_argument('--format', choices=('ros2', 'ros1'), default='ros2', dest='fmt',
                    help='rosbag2 folder (default) or ROS 1 .bag')
@@ -67,7 +76,12 @@ def run(args: argparse.Namespace) -> int:
     if scans is None and args.scenario not in ROUTES:
         scans = 300
     total = scans
-    if scans is None:  # the whole route: its length is known once it is planned (cheap)
+    if scans is None and args.day > 0:
+        from gft_odom.sim.later_day import simulate_day
+        total = simulate_day(config, args.seed, args.map_route or args.scenario, args.day,
+                             args.scenario, args.canopy, args.map_distance_m or args.distance_m,
+                             args.distance_m)[0].n_scans_in_drive
+    elif scans is None:  # the whole route: its length is known once it is planned (cheap)
         total = ScanSimulator.for_drive(config, args.scenario, args.seed, None,
                                         args.distance_m, args.vary,
                                         family)[0].n_scans_in_drive
@@ -77,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
                                  fmt=args.fmt, topdown_png=not args.no_png,
                                  progress=lambda done: update(done),
                                  distance_m=args.distance_m, vary=args.vary,
-                                 family=family)
+                                 family=family, day=args.day, map_route=args.map_route,
+                                 canopy=args.canopy, map_distance_m=args.map_distance_m)
     print(f'bag:          {result.bag_path}')
     print(f'ground truth: {result.gt_csv_path}')
     print(f'sensor poses: {result.gt_tum_path}')
