@@ -41,12 +41,14 @@ lint: setup
 bench: setup
 	$(PY) benchmarks/run_all.py
 
-# Only the benchmark of record: its ten held-out varied drives (3.5 km; the sets held-out and
-# new-held-out), gft_odom and seven peers. Simulates the drives once into
-# ~/.cache/gft_odom/drives, then runs every method on them (hours on 2 cores).
+# Only the benchmark of record: its ten varied drives, the four never used, the twenty
+# edge-of-block drives and the six of the stress family (6 km), gft_odom and seven peers.
+# Simulates the drives once into ~/.cache/gft_odom/drives, then runs every method on them
+# (many hours on 2 cores; each result is cached, so a run can be resumed).
 bench-record: setup
-	$(PY) benchmarks/bench_record.py --drives held-out
-	$(PY) benchmarks/bench_record.py --drives new-held-out
+	$(PY) benchmarks/bench_record.py --drives record
+	$(PY) benchmarks/bench_record.py --drives never-used
+	$(PY) benchmarks/bench_record.py --drives edge
 	$(PY) benchmarks/bench_record.py --drives stress
 
 clean:

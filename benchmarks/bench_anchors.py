@@ -1,8 +1,8 @@
 """A keyframe's map update against the number of anchors a long run has accumulated.
 
 The local map keeps anchors (points of keyframes that left the window) for the whole run, up to
-`registration.map_anchor_max_points` (2M). This times `LocalMap.add_keyframe` (the merge and
-crop of the map; normals off, they do not depend on the anchors) in a synthetic window of
+ANCHOR_MAX_POINTS (2M). This times `LocalMap.add_keyframe` (the merge, the crop and the map's
+normals) in a synthetic window of
 60 keyframes of 3 000 points on a line of poses, with N anchors spread over a 2 km x 200 m
 farm, and the anchoring of a leaving keyframe apart. Median of the keyframes after the window
 filled, per N. Same process, same machine: compare the rows, not other runs.
@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from gft_odom.bench.report import machine_info
-from gft_odom.core.local_map import LocalMap, voxel_keys
+from gft_odom.core.registration.local_map import LocalMap
+from gft_odom.core.registration.voxels import voxel_keys
 
 RESULTS = Path(__file__).resolve().parent / 'results' / 'anchors.json'
 
@@ -30,13 +31,12 @@ RESULTS = Path(__file__).resolve().parent / 'results' / 'anchors.json'
 def time_updates(n_anchors: int, keyframes: int = 80, seed: int = 0) -> dict:
     """Median / p95 ms of add_keyframe and of its anchoring, with `n_anchors` in the map."""
     rng = np.random.default_rng(seed)
-    local_map = LocalMap(0.3, 40.0, 80_000, 60, 1.0, 0.2, 15, with_normals=False,
-                         anchor_smoothness=0.75)
+    local_map = LocalMap(0.3, 40.0, 80_000, 60, 1.0)
     if n_anchors:
         farm = rng.uniform([-1000.0, -100.0, -1.0], [1000.0, 100.0, 3.0], (n_anchors, 3))
         keys, first = np.unique(voxel_keys(farm, 0.3), return_index=True)
         local_map._anchors.add(keys, farm[first], np.ones(first.shape[0]),
-                               np.zeros((first.shape[0], 3)))
+                               farm[first] + [0.0, 0.0, 1.0])
     total, anchoring = [], []
     anchor = local_map._anchor
 

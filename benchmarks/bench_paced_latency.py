@@ -2,10 +2,9 @@
 arrives, one method at a time, in rounds whose order alternates.
 
 The record's latency at the sensor's rate is a model (`replay.latency_at_rate_s`: one worker,
-the scans queued behind the work before them). It cannot see a map update done on a thread of
-its own (`registration.map_update: background`), whose cost is a share of the other core while
-the next scan is matched. This benchmark replays a cached drive in real time instead
-(`run_method(..., paced=True)`): the latency of a scan runs from its arrival to its pose.
+the scans queued behind the work before them). This benchmark replays a cached drive in real
+time instead (`run_method(..., paced=True)`): the latency of a scan runs from its arrival to its
+pose, kiss-icp in the same rounds.
 
     .venv/bin/python benchmarks/bench_paced_latency.py --drive lawnmower-211 --rounds 2
 
@@ -31,37 +30,9 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.io.atomic import write_text_atomic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_record import (  # noqa: E402
-    DRIVE_SETS,
-    NO_ANY_SIDE,
-    NO_DESKEW,
-    NO_WINDOW_GATE,
-    RESULTS,
-    before_window_gate,
-)
+from bench_record import DRIVE_SETS, RESULTS  # noqa: E402
 
-ENTRIES = (
-    Entry('gft_odom, map update inline', 'default+gft',
-          (('registration.map_update', 'inline'),)),
-    Entry('gft_odom, map served from any side (session 28 default)', 'default+gft',
-          NO_WINDOW_GATE),
-) + before_window_gate((
-    Entry('gft_odom, frequencies before the pose (session 31 default)', 'default+gft',
-          (('pipeline.frequencies_after_pose', False),)),
-    Entry('gft_odom, map update in the background', 'default+gft',
-          (('registration.map_update', 'background'),)),
-    Entry('gft_odom, map normals on demand', 'default+gft',
-          (('registration.map_normals', 'on_demand'),)),
-    Entry('gft_odom, map normals in time', 'default+gft',
-          (('registration.map_normals', 'in_time'),)),
-    Entry('gft_odom, turn-check screen (session 26 default)', 'default+gft',
-          (('registration.turn_check_screen_iterations', 10),)),
-    Entry('gft_odom without deskew (session 17 default)', 'default+gft', NO_DESKEW),
-    Entry('gft_odom without the any-side share (session 16 default)', 'default+gft',
-          NO_DESKEW + NO_ANY_SIDE),
-)) + (
-    Entry('kiss-icp', 'kiss-icp'),
-)
+ENTRIES = (Entry('gft_odom', 'default+gft'), Entry('kiss-icp', 'kiss-icp'))
 FIGURES = ('latency_median_ms', 'latency_p95_ms', 'ate_rmse_m', 'fallbacks')
 
 

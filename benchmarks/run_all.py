@@ -4,7 +4,7 @@ Usage:
   .venv/bin/python benchmarks/run_all.py [--only NAME ...] [--skip NAME ...]
       [--args NAME="--scans 60 ..."] [--dry-run]
 
-NAME is a script's stem (`bench_spectral`, `bench_registration`, `bench_sim`, ...) or `odometry`
+NAME is a script's stem (`bench_spectral`, `bench_anchors`, `bench_sim`, ...) or `odometry`
 for `gft-odom bench`. Each job runs in its own process, one after the other (the machine is
 shared: never in parallel), with its own arguments or its defaults. Afterwards every
 benchmarks/results/*.json is listed in benchmarks/results/index.json and index.md with the job

@@ -9,8 +9,7 @@ the largest error, and the error over time. Every second the node's RSS is read 
 /proc/<pid>/status; the latency of a scan is publish -> its odometry received. A scan the node
 never answers is counted as dropped. The summary FAILS (exit 1) when tracking is lost (ATE
 RMSE above 1 % of the distance driven), fewer than 99 % of the scans are answered, or RSS
-grows after the warm-up. Writes benchmarks/results/soak_node.{json,md,png} and
-docs/soak_node.png.
+grows after the warm-up. Writes benchmarks/results/soak_node.{json,md,png}.
 
     .venv/bin/python benchmarks/soak_node.py --minutes 10 --params-file config/filter_odom.yaml
 """
@@ -22,7 +21,6 @@ import json
 import os
 import random
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -85,7 +83,7 @@ MAX_RSS_SLOPE_MB_PER_MIN = 1.0
 def pose_errors(sent_index: np.ndarray, answered_T: list, truth_base: np.ndarray):
     """Position errors [m] of the answered poses after rigid alignment to the ground truth of
     their scans, and the distance driven by the ground truth over the sent scans."""
-    from gft_odom.core.metrics import umeyama_alignment
+    from gft_odom.core.alignment import umeyama_alignment
     est = np.array([T[:3, 3] for T in answered_T])
     ref = truth_base[sent_index, :3, 3]
     R, t, _ = umeyama_alignment(est, ref)
@@ -144,7 +142,6 @@ def main(argv=None) -> int:
                         help='0.2 is the real VLP-16; 0.4 halves the points per scan')
     add_driver_profile_argument(parser)
     parser.add_argument('--out', default=str(REPO / 'benchmarks' / 'results'))
-    parser.add_argument('--docs', default=str(REPO / 'docs'))
     args = parser.parse_args(argv)
     use_driver_profile(args.driver_profile)
 
@@ -302,9 +299,8 @@ def main(argv=None) -> int:
         failures.append(f'RSS grows {slope:.2f} MB/min after the warm-up')
     figures['failures'] = '; '.join(failures) or 'none'
     error_t = np.array([sent[s] - t_start for s in got])
-    out, docs = Path(args.out), Path(args.docs)
+    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    docs.mkdir(parents=True, exist_ok=True)
     (out / 'soak_node.json').write_text(json.dumps(figures, indent=2) + '\n')
     (out / 'soak_node.md').write_text(
         '| figure | value |\n|---|---|\n'
@@ -312,8 +308,6 @@ def main(argv=None) -> int:
                   for k, v in figures.items()))
     _plot(out / 'soak_node.png', rss_t, rss_v, sent_t, latency_ms, figures, error_t,
           errors if len(got) >= 3 else np.zeros(0))
-    if (docs / 'soak_node.png').resolve() != (out / 'soak_node.png').resolve():
-        shutil.copyfile(out / 'soak_node.png', docs / 'soak_node.png')
     print(f'node log: {node_log}')
     print(json.dumps(figures, indent=2))
     for failure in failures:

@@ -12,8 +12,8 @@ things ATE grows from.
     .venv/bin/python benchmarks/where_it_accrues.py --drive spiral-303 --peer GenZ-ICP
 
 `--peer` names a row of the record (bench_record.ENTRIES). `--parts` adds our default with one
-part switched off at a time (the map's view rules, the window, anchors, the kernel, deskew,
-the turn check). Runs go through the record's cache: a pair the record measured is read back
+part switched off or set otherwise at a time (the window, the kernel, deskew, the source
+voxel). Runs go through the record's cache: a pair the record measured is read back
 with its trajectory, a new one is measured and kept. Writes
 benchmarks/results/accrual_<drive>.{json,md}.
 """
@@ -45,19 +45,11 @@ TURN_RATE_RPS = 0.1
 LABELS = ('row', 'turn', 'headland')
 # One part of the default switched off (or set to what a peer does) at a time.
 PARTS = {
-    'map served from any side': {'registration.map_window_rough_view_deg': 0.0,
-                                 'registration.map_smooth_view_deg': 180.0,
-                                 'registration.map_anchor_rough_view_deg': 0.0},
     'window of 20 keyframes': {'registration.map_keyframes': 20},
     'window of 120 keyframes': {'registration.map_keyframes': 120,
                                 'registration.map_max_points': 160000},
-    # Without anchors the view rules have nothing to serve from one side (the config says so).
-    'no anchors (map served from any side)': {'registration.map_anchors': False,
-                                              'registration.map_window_rough_view_deg': 0.0,
-                                              'registration.map_smooth_view_deg': 180.0},
     'kernel 3x wider (Tukey 0.9 m)': {'registration.robust_kernel_scale_m': 0.9},
     'no deskew': {'registration.deskew': False},
-    'no turn check': {'registration.turn_check': False},
     'source voxel 0.3 m': {'registration.voxel_size_m': 0.3},
 }
 

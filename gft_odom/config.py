@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gft_odom.core.metrics import MetricsConfig
-from gft_odom.core.registration_config import RegistrationConfig
+from gft_odom.core.registration import RegistrationConfig
 from gft_odom.core.spectral.filter import SpectralConfig
 from gft_odom.errors import ConfigError
 from gft_odom.io.ground_truth import GroundTruthConfig
@@ -39,14 +39,9 @@ class PipelineConfig:
     # A control for ablations only: each scan's frequencies are permuted among its points
     # before registration (their distribution kept, what they tell about each point lost).
     shuffle_frequencies: bool = False
-    # Which permutation the control draws (0: the one of the records since session 6); a
-    # few seeds give the control's spread, against which the frequency's choice is judged.
+    # Which permutation the control draws; a few seeds give the control's spread, against
+    # which the frequency's choice is judged.
     shuffle_seed: int = 0
-    # A scan's frequencies after its pose is out, when nothing needs them before it: the
-    # mask keeps every point and the registration reads them only for its next keyframe's
-    # map (the default). The same poses; the pose comes a filter stage sooner. Off: before
-    # the registration, as up to session 31.
-    frequencies_after_pose: bool = True
 
     def validate(self) -> None:
         """Raise ConfigError naming the first value that cannot work."""

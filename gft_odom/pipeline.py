@@ -15,8 +15,6 @@ outlier. So no stamp can lock the later valid scans out.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import logging
 import time
 from collections import Counter
@@ -29,55 +27,29 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.core.bounds_watch import BoundsWatch
 from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.deferred import Deferred, resolved
+from gft_odom.core.degeneracy import FLAT_CLOUD_STD_M, thinnest_axis_std_m
 from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transform_points
+from gft_odom.core.memory import (
+    TRIM_AFTER_POINTS,
+    TRIMS_AFTER_A_LARGE_SCAN,
+    release_free_memory,
+)
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.spectral.bands import BandMask
-from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
-from gft_odom.core.spectral.lowpass import range_lowpass
-from gft_odom.core.spectral.sources import make_source
-from gft_odom.core.trajectory import Trajectory
+from gft_odom.core.spectral.filter import PointFrequencies, SpectralConfig, SpectralFilter
+from gft_odom.core.trajectory import Trajectory, TrajectoryRecorder
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError, SpectralError
 
 log = logging.getLogger(__name__)
 
-# A cloud whose thinnest principal axis has a standard deviation below this is flat (ground
-# only, a wall): ICP cannot observe the in-plane motion (x, y, yaw on ground) but converges
-# with a confident covariance and drags the map along, so the motion prediction is used
-# instead. Orchard scans measure >= 0.69 m on that axis whatever the band mask, bare sim
-# ground 0.01-0.04 m (docs/robustness.md).
-FLAT_CLOUD_STD_M = 0.05
 DEGENERATE_STATUS = 'fallback_degenerate'
+# The scan-line weight of the frequency the map's anchors keep their points by.
+ANCHOR_SCAN_LINE_WEIGHT = 'distance'
 # Why a scan can be rejected before registration (FrameResult.status is 'rejected_<reason>').
 REJECTION_REASONS = ('empty', 'degenerate', 'out_of_order', 'clock_jump')
 # Accepted scans that restarted the clock: counted in status_counts beside the statuses.
 CLOCK_RESET = 'clock_reset'
-# After a scan this big, give the freed heap back to the OS at the next call: glibc keeps it
-# otherwise (a 3-million-point scan left +37 MB RSS for good, docs/robustness.md).
-TRIM_AFTER_POINTS = 500_000
-# ... and at each call for 2 s at 10 Hz after it: freeing its big blocks raises glibc's mmap
-# threshold, so the next scans' blocks come from the heap and stay there until a trim (with
-# deskew, one trim left +12 MB against a normal scan, three +12 MB, twenty +3.5 MB; a trim
-# costs ~0.01 ms).
-TRIMS_AFTER_A_LARGE_SCAN = 20
-# A scan whose work began this long after the work before it ended did not wait behind it
-# (the node's callback, or a caller's decoding, takes a few ms in between).
-IDLE_BEFORE_A_SCAN_S = 0.01
-
-
-def _malloc_trim():
-    """glibc's malloc_trim(0) when available (a no-op elsewhere)."""
-    name = ctypes.util.find_library('c')
-    try:
-        trim = ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):
-        trim = None
-    return (lambda: trim(0)) if trim is not None else (lambda: 0)
-
-
-release_free_memory = _malloc_trim()
-
-
 @dataclass(frozen=True)
 class Rejection:
     """Why a scan was not registered: a reason from REJECTION_REASONS and a log line."""
@@ -99,7 +71,7 @@ class FrameResult:
     n_points_kept: int
     filtered: Scan  # the points registration used
     # (nu, band) per kept point, None when the filter is off; computed after the pose when
-    # nothing needs them before it (`pipeline.frequencies_after_pose`), at the first read.
+    # nothing needs them before it (`frequencies_after_pose`), at the first read.
     frequencies: Deferred | None
     timings_s: dict[str, float] = field(default_factory=dict)
     rejection: Rejection | None = None  # set when the scan was not registered
@@ -142,15 +114,13 @@ def _nu_and_band(freqs: PointFrequencies) -> tuple[np.ndarray, np.ndarray]:
     return freqs.nu, freqs.band
 
 
-def thinnest_axis_std_m(points_xyz: np.ndarray) -> float:
-    """Standard deviation of the points along their thinnest principal axis (inf if < 10)."""
-    if points_xyz.shape[0] < 10:
-        return float('inf')  # too few to judge: registration's min_points decides
-    # Axis-major (3, N): the mean and the 3 x 3 product run ~3x faster than on (N, 3) rows.
-    axes = np.ascontiguousarray(points_xyz.T, dtype=np.float64)
-    centred = axes - axes.mean(axis=1, keepdims=True)
-    scatter = centred @ centred.T / points_xyz.shape[0]
-    return float(np.sqrt(max(np.linalg.eigvalsh(scatter)[0], 0.0)))
+def anchor_filter(spectral: SpectralConfig) -> SpectralFilter | None:
+    """The filter of the frequency the map's anchors keep their points by, when it is not the
+    published one: on the scan-line graph, distance weights (with range-slope weights the
+    anchors lost a record drive, docs/method.md). None: the anchors read the published ones."""
+    if spectral.graph != 'scan_line' or spectral.scan_line_weight == ANCHOR_SCAN_LINE_WEIGHT:
+        return None
+    return SpectralFilter.from_config(replace(spectral, scan_line_weight=ANCHOR_SCAN_LINE_WEIGHT))
 
 
 def base_to_sensor(config: GftOdomConfig) -> np.ndarray:
@@ -166,28 +136,23 @@ class OdometryPipeline:
         self.record_trajectory = record_trajectory
         self.config = config
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.anchor_filter = anchor_filter(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
-        self.frequency_source = make_source(self.spectral_filter)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
         # Says once when the motion bounds keep refusing matches that agree (a fast platform).
         self.bounds_watch = BoundsWatch(config.registration.max_speed_mps,
                                         config.registration.max_yaw_rate_rps)
         self.status_counts: Counter[str] = Counter()
-        self._stamps_ns: list[int] = []
-        self._poses: list[np.ndarray] = []
+        self._recorded = TrajectoryRecorder()
         # Trajectories of the odometry runs ended by a clock reset (bag loop), oldest first.
         self.finished_segments: list[Trajectory] = []
         self._last_accepted_ns: int | None = None
         self._jump_candidate_ns: int | None = None  # a stamp jump waiting for confirmation
         self._trims_pending = 0
-        # What the last scan left for `update_map`: (its deferred frequencies or None, the
-        # cropped scan, the pose the frequency source observes or None, its timings).
+        # What the last scan left for `update_map`: (its deferred frequencies or None, its
+        # timings).
         self._left_after_pose: tuple | None = None
-        # When the last scan arrived, as far as the pipeline can tell (`_note_arrival`):
-        # (perf_counter seconds, its stamp in ns), None before the first.
-        self._arrival: tuple[float, int] | None = None
-        self._work_ended_s = -np.inf  # when the last scan's work (and its map's) ended
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -195,13 +160,12 @@ class OdometryPipeline:
         empty map, no velocity). The trajectory so far is kept in `finished_segments`."""
         self.update_map()  # the last scan's work, in the run it belongs to
         self.registration.reset()
-        self.frequency_source.reset()  # a local-map source holds keyframes of the old run
         self.n_resets += 1
         self._last_accepted_ns = None
         self._jump_candidate_ns = None
-        if self._stamps_ns:
+        if len(self._recorded):
             self.finished_segments.append(self.sensor_trajectory())
-        self._stamps_ns, self._poses = [], []
+        self._recorded.clear()
 
     def screen(self, scan: Scan) -> Rejection | None:
         """Why `scan` would be rejected now, or None (no state changes)."""
@@ -270,9 +234,8 @@ class OdometryPipeline:
         """One scan through acceptance, crop, filter, registration. `freqs`: frequencies of the
         cropped scan computed earlier (the band search re-filters them with many masks).
         A rejected scan gives a result with status 'rejected_<reason>' and the last pose."""
-        self.update_map(next_scan_due_s=time.perf_counter())  # the previous scan's, late
+        self.update_map()  # the previous scan's, late
         t0 = time.perf_counter()
-        self._note_arrival(t0, int(scan.stamp_ns))
         if self._trims_pending:
             release_free_memory()
             self._trims_pending -= 1
@@ -287,19 +250,18 @@ class OdometryPipeline:
         t1 = time.perf_counter()
         # 2. Graph-frequency band-pass: per-point band, keep the bands of the mask. A mask
         # that keeps every point leaves the frequencies to after the pose.
-        kept, kept_freqs, after_pose = cropped, None, None
+        kept, kept_freqs, after_pose, keep = cropped, None, None, None
         if self.use_filter and len(cropped):
-            kept = self._range_lowpass(cropped)
             if freqs is None and self.frequencies_after_pose:
                 # The crop keeps only finite points, so the mask keeps them all.
                 after_pose = Deferred(partial(self._frequencies_after_pose, cropped))
                 kept_freqs = after_pose.then(_nu_and_band)
             else:
                 if freqs is None:
-                    freqs = self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+                    freqs = self.spectral_filter.scan_frequencies(cropped, self.band_mask.n_bands)
                 keep = self._precomputed_keep(cropped, freqs)
                 if keep.all():  # all-pass: no copy of the scan
-                    kept_freqs = Deferred.of((freqs.nu, freqs.band))
+                    kept_freqs, keep = Deferred.of((freqs.nu, freqs.band)), None
                 else:
                     kept = kept.select(keep)
                     kept_freqs = Deferred.of((freqs.nu[keep], freqs.band[keep]))
@@ -311,19 +273,15 @@ class OdometryPipeline:
                       'prediction', scan.stamp_ns, flat_std_m)
             reg = self.registration.advance_with_prediction(scan.stamp_ns, DEGENERATE_STATUS)
         else:
-            nu = None if kept_freqs is None else kept_freqs.then(
-                lambda nu_band: self._registration_nu(nu_band[0], scan.stamp_ns))
+            nu = None if kept_freqs is None else self._anchor_nu(cropped, keep, kept_freqs,
+                                                                 scan.stamp_ns)
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
                                              kept.time_offset_s,
-                                             nu=nu if after_pose else resolved(nu),
+                                             nu=nu if after_pose or self.anchor_filter
+                                             else resolved(nu),
                                              defer_map_update=True)
         t3 = time.perf_counter()
-        # 4. Update: odom -> base_link, trajectory, counters, the frequency source's map
-        # (after the frequencies: in `update_map` when they come after the pose).
-        observe = self.use_filter and not reg.status.startswith('fallback')
-        if observe and after_pose is None:
-            self.frequency_source.observe(cropped, reg.T_world_sensor)
-        t4 = time.perf_counter()  # a local-map source's keyframe update is filter time
+        # 4. Update: odom -> base_link, trajectory, counters.
         T_odom_base = sensor_to_base_poses(reg.T_world_sensor, self.T_base_sensor)
         self.status_counts[reg.status] += 1
         self.bounds_watch.observe(reg.status, reg.refused_speed_mps, reg.refused_rate_rps)
@@ -331,12 +289,10 @@ class OdometryPipeline:
         pose_stamp_ns = int(scan.stamp_ns) + int(round(
             self.registration.pose_time_offset_s(kept.time_offset_s) * NS_PER_S))
         if self.record_trajectory:
-            self._stamps_ns.append(pose_stamp_ns)
-            self._poses.append(reg.T_world_sensor)
-        timings_s = {'crop': t1 - t0, 'filter': (t2 - t1) + (t4 - t3), 'register': t3 - t2,
-                     'pipeline': t4 - t0}
-        self._left_after_pose = (after_pose, cropped,
-                                 reg.T_world_sensor if observe else None, timings_s)
+            self._recorded.append(pose_stamp_ns, reg.T_world_sensor)
+        timings_s = {'crop': t1 - t0, 'filter': t2 - t1, 'register': t3 - t2,
+                     'pipeline': time.perf_counter() - t0}
+        self._left_after_pose = (after_pose, timings_s)
         return FrameResult(
             stamp_ns=pose_stamp_ns, T_world_sensor=reg.T_world_sensor,
             T_odom_base=T_odom_base, covariance=reg.covariance, status=reg.status,
@@ -346,33 +302,35 @@ class OdometryPipeline:
 
     @property
     def frequencies_after_pose(self) -> bool:
-        """Whether a scan's frequencies are computed after its pose
-        (`pipeline.frequencies_after_pose`, a mask that keeps every point whatever its
-        frequency, and no registration option that reads them in the match: the pose does
-        not need them)."""
-        return (self.config.pipeline.frequencies_after_pose
-                and self.spectral_filter.keeps_every_finite_point(self.band_mask)
-                and not self.config.registration.reads_scan_frequencies_before_pose)
+        """Whether a scan's frequencies are computed after its pose: the mask keeps every
+        point whatever its frequency, so the pose does not need them (the registration reads
+        them only for its next keyframe's map)."""
+        return self.spectral_filter.keeps_every_finite_point(self.band_mask)
 
     def _frequencies_after_pose(self, cropped: Scan) -> PointFrequencies:
         """The frequencies of a scan whose pose is out: whatever fails in them is a
         SpectralError, which costs the scan its frequencies, nothing else."""
         try:
-            return self.frequency_source.frequencies(cropped, self.band_mask.n_bands)
+            return self.spectral_filter.scan_frequencies(cropped, self.band_mask.n_bands)
         except Exception as exc:
             raise SpectralError(f'the frequencies of the scan at {cropped.stamp_ns} ns failed '
                                 f'after its pose: {exc!r}') from exc
 
-    def _range_lowpass(self, cropped: Scan) -> Scan:
-        """The scan with its ranges low-pass filtered on the scan-line graph
-        (`spectral.range_lowpass_alpha`; the scan itself when off or without rings). Its
-        frequencies are still those of the measured points."""
-        cfg = self.config.spectral
-        if cfg.range_lowpass_alpha <= 0.0 or cropped.ring is None:
-            return cropped
-        points = range_lowpass(cropped.points_xyz, cropped.ring, cfg.range_lowpass_alpha,
-                               cfg.tau_m, cfg.range_lowpass_sigma_m)
-        return replace(cropped, points_xyz=points)
+    def _anchor_nu(self, cropped: Scan, keep: np.ndarray | None, kept_freqs: Deferred,
+                   stamp_ns: int) -> Deferred:
+        """The frequencies the map's anchors keep the kept points by: the published ones, or
+        (`anchor_filter`) their own, computed only if a keyframe reads them."""
+        if self.anchor_filter is None:
+            return kept_freqs.then(lambda nu_band: self._registration_nu(nu_band[0], stamp_ns))
+
+        def compute() -> np.ndarray:
+            try:
+                nu = self.anchor_filter.scan_frequencies(cropped, self.band_mask.n_bands).nu
+            except Exception as exc:
+                raise SpectralError(f'the anchor frequencies of the scan at {stamp_ns} ns '
+                                    f'failed: {exc!r}') from exc
+            return self._registration_nu(nu if keep is None else nu[keep], stamp_ns)
+        return Deferred(compute)
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control
@@ -425,16 +383,14 @@ class OdometryPipeline:
         if config.registration != self.config.registration:
             raise ConfigError('registration parameters can only change before the first scan')
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
-        self.frequency_source = make_source(self.spectral_filter)
+        self.anchor_filter = anchor_filter(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 
-    def update_map(self, next_scan_due_s: float | None = None) -> float:
+    def update_map(self) -> float:
         """The work the last `register_frame` left after its pose: its frequencies (when
         they come after the pose, and nobody read them yet) and a keyframe's map rebuild
-        (its normals and KD-tree); the seconds it took. `next_scan_due_s`
-        (`time.perf_counter` seconds; default: one scan period after the last scan arrived,
-        `_note_arrival`): what map_normals 'in_time' fits its normals before.
+        (its normals and search index); the seconds it took.
 
         `register_frame` returns the pose first, so that a caller can publish it and then
         call this; the next `register_frame` does it when the caller did not. Either way
@@ -442,35 +398,15 @@ class OdometryPipeline:
         wherever they were computed) and 'map_update'."""
         t0 = time.perf_counter()
         left, self._left_after_pose = self._left_after_pose, None
-        after_pose, cropped, T_observed, timings_s = left or (None, None, None, {})
+        after_pose, timings_s = left or (None, {})
         if after_pose is not None:
-            observe_s = 0.0
             try:
-                after_pose.get()  # the keyframe's smoothness and the source need them
+                after_pose.get()  # the keyframe's smoothness needs them
             except SpectralError as exc:  # the pose is out: the scan is not lost for this
                 log.warning('%s; its keyframe, if any, is mapped without them', exc)
-            else:
-                t1 = time.perf_counter()
-                if T_observed is not None:
-                    self.frequency_source.observe(cropped, T_observed)
-                observe_s = time.perf_counter() - t1
-            timings_s['filter'] = after_pose.seconds + observe_s
-        if next_scan_due_s is None and self._arrival is not None:
-            next_scan_due_s = self._arrival[0] + self.config.registration.scan_period_s
-        timings_s['map_update'] = self.registration.update_map(next_scan_due_s)
-        self._work_ended_s = time.perf_counter()
-        return self._work_ended_s - t0
-
-    def _note_arrival(self, started_s: float, stamp_ns: int) -> None:
-        """When this scan arrived: when its work began, or earlier if it waited behind
-        the work before it (its stamp's step from the scan before, after that one's
-        arrival; a scan that began after the work before it had been idle a while did not
-        wait). Scans come every scan period, so the next is due one period later."""
-        arrived_s = started_s
-        waited = started_s - self._work_ended_s <= IDLE_BEFORE_A_SCAN_S
-        if waited and self._arrival is not None and stamp_ns >= self._arrival[1]:
-            arrived_s = min(started_s, self._arrival[0] + (stamp_ns - self._arrival[1]) * 1e-9)
-        self._arrival = (arrived_s, stamp_ns)
+            timings_s['filter'] = after_pose.seconds
+        timings_s['map_update'] = self.registration.update_map()
+        return time.perf_counter() - t0
 
     def map_snapshot(self, latest: FrameResult | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -482,11 +418,7 @@ class OdometryPipeline:
         from scipy.spatial import cKDTree
         reg = self.registration
         self.update_map()
-        reg.local_map.adopt()  # map_update 'background': the newest rebuild, a scan early
-        points = reg.local_map.points_xyz
-        if not len(points) and reg._prev_scan is not None:
-            points = transform_points(reg.T_world_trusted, np.asarray(reg._prev_scan.points))
-        points = np.array(points, dtype=np.float64).reshape(-1, 3)
+        points = np.array(reg.reference_points_world(), dtype=np.float64).reshape(-1, 3)
         nu = np.full(points.shape[0], np.nan, dtype=np.float32)
         if (latest is not None and latest.nu is not None and len(latest.filtered)
                 and points.shape[0]):
@@ -500,8 +432,7 @@ class OdometryPipeline:
 
     def sensor_trajectory(self) -> Trajectory:
         """T_world_sensor of every registered scan (world = first sensor frame)."""
-        return Trajectory(np.array(self._stamps_ns, dtype=np.int64),
-                          np.array(self._poses).reshape(-1, 4, 4))
+        return self._recorded.trajectory()
 
     def base_trajectory(self) -> Trajectory:
         """T_odom_base of every registered scan: what the node publishes."""

@@ -11,7 +11,7 @@ from types import ModuleType
 import numpy as np
 import open3d as o3d
 
-from gft_odom.core.gauss_newton import MapTarget
+from gft_odom.core.registration.matching import MapTarget
 
 
 def velodyne_columns(n: int, seed: int = 0) -> dict[str, np.ndarray]:

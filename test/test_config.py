@@ -39,7 +39,6 @@ MODE_OVERLAYS = {
     'paper_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (3, 4),
                             'spectral.method': 'signal', 'spectral.graph': 'slice',
                             'registration.mode': 'paper'},
-    'default_mode_gft.yaml': {'spectral.n_bands': 4, 'spectral.band_mask': (1,)},
     'no_deskew.yaml': {'registration.deskew': False},
 }
 

@@ -29,8 +29,8 @@ def test_relative_links_resolve():
 
 def test_the_readme_links_the_pages_the_long_material_moved_to():
     readme = (REPO / 'README.md').read_text()
-    for page in ('ros_node', 'tools', 'parameters', 'facts', 'layout', 'results_history',
-                 'benchmarks', 'registration'):
+    for page in ('ros_node', 'tools', 'parameters', 'facts', 'layout', 'benchmarks',
+                 'registration'):
         assert f'](docs/{page}.md)' in readme, page
 
 

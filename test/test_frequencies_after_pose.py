@@ -1,6 +1,6 @@
-"""A scan's frequencies computed after its pose (`pipeline.frequencies_after_pose`): the same
-poses, frequencies and map as computed before it, and computed before it whenever something
-needs them there."""
+"""A scan's frequencies computed after its pose (`OdometryPipeline.frequencies_after_pose`):
+the same poses, frequencies and map as computed before it, and computed before it whenever
+something needs them there (a mask that drops points)."""
 
 from __future__ import annotations
 
@@ -21,9 +21,16 @@ def row_scans():
     return [sim.scan(i).scan for i in range(N_SCANS)]
 
 
-def _run(scans, overrides=None, update_map=True, between=None):
+class _Before(OdometryPipeline):
+    """The control: every scan's frequencies computed before its pose."""
+
+    frequencies_after_pose = False
+
+
+def _run(scans, overrides=None, update_map=True, between=None, before=False):
     """`between(pipeline, k)`: called after scan k's pose, before its update_map."""
-    pipeline = OdometryPipeline(with_values(GftOdomConfig(), overrides or {}))
+    cls = _Before if before else OdometryPipeline
+    pipeline = cls(with_values(GftOdomConfig(), overrides or {}))
     results, done_at_pose = [], []
     for k, scan in enumerate(scans):
         result = pipeline.register_frame(scan)
@@ -40,14 +47,10 @@ def _map_smoothness(pipeline):
     return [s for _, _, s in pipeline.registration.local_map._keyframes]
 
 
-@pytest.mark.parametrize('overrides', [
-    {}, {'pipeline.shuffle_frequencies': True},
-    {'spectral.frequency_source': 'local_map'},  # its state: frequencies, then observe
-    {'registration.map_update': 'background'}])  # the keyframe's rebuild on a thread
+@pytest.mark.parametrize('overrides', [{}, {'pipeline.shuffle_frequencies': True}])
 def test_after_the_pose_gives_the_same_poses_frequencies_and_map(row_scans, overrides):
     after, after_results, after_done = _run(row_scans, overrides)
-    before, before_results, before_done = _run(
-        row_scans, {**overrides, 'pipeline.frequencies_after_pose': False})
+    before, before_results, before_done = _run(row_scans, overrides, before=True)
     assert after.frequencies_after_pose and not before.frequencies_after_pose
     assert not any(after_done) and all(before_done)
     for a, b in zip(after_results, before_results):
@@ -77,10 +80,6 @@ def test_the_next_scan_finishes_what_its_caller_left(row_scans):
 @pytest.mark.parametrize('overrides', [
     {'spectral.band_mask': [1, 2, 3]},  # the mask drops points by their frequency
     {'spectral.keep_isolated': False},  # ... and band-0 points
-    {'registration.voxel_priority': 'smoothest'},  # the downsample reads them
-    {'registration.rough_beam_shift_m': 0.1},  # ... and moves points by them
-    {'registration.rough_kernel_scale_m': 0.6},  # the match's kernel reads them
-    {'registration.rough_gate_ratio': 0.4},  # ... and its gate
 ])
 def test_what_needs_the_frequencies_before_the_pose_gets_them_then(row_scans, overrides):
     pipeline, results, done_at_pose = _run(row_scans[:4], overrides)
@@ -102,32 +101,31 @@ def test_a_call_between_a_pose_and_its_update_map_sees_the_scan_finished(row_sca
             else:
                 pipeline.map_snapshot()
 
-    overrides = {'spectral.frequency_source': 'local_map'}
-    after, after_results, _ = _run(row_scans[:12], overrides, between=between)
-    before, before_results, _ = _run(
-        row_scans[:12], {**overrides, 'pipeline.frequencies_after_pose': False},
-        between=between)
+    after, after_results, _ = _run(row_scans[:12], between=between)
+    before, before_results, _ = _run(row_scans[:12], between=between, before=True)
     for a, b in zip(after_results, before_results):
         np.testing.assert_array_equal(a.T_world_sensor, b.T_world_sensor)
         np.testing.assert_array_equal(a.nu, b.nu)
     for a, b in zip(_map_smoothness(after), _map_smoothness(before)):
         np.testing.assert_array_equal(a, b)
-    assert len(after.frequency_source._keyframes) == len(before.frequency_source._keyframes)
-    assert after.frequency_source.keyframe_updates == before.frequency_source.keyframe_updates
 
 
 def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplog):
-    """The second scan's frequencies raise (its keyframe replaces the first's, which was not
-    deskewed): its pose and keyframe stay (the keyframe without smoothness), the warning says
-    so, and the scans after it are as without the failure."""
+    """The second scan's frequencies raise, the published ones and the anchors' (its keyframe
+    replaces the first's, which was not deskewed): its pose and keyframe stay (the keyframe
+    without smoothness), the warning says so, and the scans after it are as without the
+    failure."""
     pipeline = OdometryPipeline(GftOdomConfig())
-    compute = pipeline.frequency_source.frequencies
+    assert pipeline.anchor_filter is not None  # the anchors have their own definition
 
-    def failing_once(cropped, n_bands):
-        if cropped.stamp_ns == row_scans[1].stamp_ns:
-            raise ValueError('a broken spectrum')
-        return compute(cropped, n_bands)
-    pipeline.frequency_source.frequencies = failing_once
+    def failing_once(compute):
+        def compute_or_fail(cropped, n_bands):
+            if cropped.stamp_ns == row_scans[1].stamp_ns:
+                raise ValueError('a broken spectrum')
+            return compute(cropped, n_bands)
+        return compute_or_fail
+    for spectral_filter in (pipeline.spectral_filter, pipeline.anchor_filter):
+        spectral_filter.scan_frequencies = failing_once(spectral_filter.scan_frequencies)
     results = []
     for scan in row_scans[:8]:
         results.append(pipeline.register_frame(scan))
@@ -145,25 +143,20 @@ def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplo
     assert all(np.isfinite(r.nu).any() for r in results[2:])
 
 
-def test_a_scan_that_waited_behind_the_work_before_it_arrived_earlier():
-    """The arrival the map's normals budget from ('in_time'): a scan that began right after
-    the work before it ended waited, and came one stamp step after the scan before; one
-    that began after an idle spell came when it began."""
+def test_the_anchors_keep_their_own_frequency_when_the_published_one_fails(row_scans):
+    """The published frequency (range-slope weights) and the anchors' (distance weights) are
+    computed apart: one failing costs the other nothing; with distance weights published, the
+    anchors read those."""
     pipeline = OdometryPipeline(GftOdomConfig())
-    period_ns = 100_000_000
-    pipeline._note_arrival(10.0, 0)
-    assert pipeline._arrival == (10.0, 0)
-    pipeline._work_ended_s = 10.15  # the scan's work overran the period
-    pipeline._note_arrival(10.151, period_ns)
-    assert pipeline._arrival[0] == pytest.approx(10.1)
-    pipeline._work_ended_s = 10.16  # caught up: the next scan came on time
-    pipeline._note_arrival(10.2, 2 * period_ns)
-    assert pipeline._arrival[0] == pytest.approx(10.2)
-    # A replay at half speed: the stamps step by a period, the scans begin two apart.
-    pipeline._work_ended_s = 10.25
-    pipeline._note_arrival(10.4, 3 * period_ns)
-    assert pipeline._arrival[0] == pytest.approx(10.4)
-    # A stamp going back starts the count again.
-    pipeline._work_ended_s = 10.5
-    pipeline._note_arrival(10.5, period_ns)
-    assert pipeline._arrival == (10.5, period_ns)
+
+    def broken(cropped, n_bands):
+        raise ValueError('a broken spectrum')
+    pipeline.spectral_filter.scan_frequencies = broken
+    for scan in row_scans[:8]:
+        pipeline.register_frame(scan)
+        pipeline.update_map()
+    keyframes = _map_smoothness(pipeline)
+    assert keyframes and all(np.isfinite(k).any() for k in keyframes)
+    same = OdometryPipeline(with_values(GftOdomConfig(), {
+        'spectral.scan_line_weight': 'distance'}))
+    assert same.anchor_filter is None

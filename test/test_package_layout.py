@@ -88,3 +88,14 @@ def test_package_xml_declares_every_ros_package_the_code_imports():
     missing_test = sorted(ROSDEP_KEYS.get(n, n) for n in tests
                           if ROSDEP_KEYS.get(n, n) not in exec_deps | test_deps)
     assert not missing_test, f'add <test_depend> for {missing_test} to package.xml'
+
+
+def test_one_version_in_setup_package_xml_and_the_package():
+    import re
+
+    import gft_odom
+    setup_version = re.search(r"version='([^']+)'", (REPO / 'setup.py').read_text()).group(1)
+    xml_version = ET.parse(REPO / 'package.xml').getroot().findtext('version')
+    assert setup_version == xml_version == gft_odom.__version__
+    changelog = (REPO / 'CHANGELOG.md').read_text()
+    assert f'## [{gft_odom.__version__}]' in changelog

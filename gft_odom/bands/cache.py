@@ -25,7 +25,7 @@ from gft_odom.core.spectral.bands import BandMask
 from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter, keep_mask
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.types import Scan
-from gft_odom.errors import BagError, ConfigError
+from gft_odom.errors import BagError
 from gft_odom.io.atomic import write_atomic
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.ground_truth import read_ground_truth
@@ -89,11 +89,9 @@ class SequenceCache:
         """Split a (P,) array over all cached points into one array per scan."""
         return [array[self._span(i)] for i in range(len(self))]
 
-    def keep(self, i: int, mask: BandMask, keep_isolated: bool, keep_out_of_range: bool
-             ) -> np.ndarray:
+    def keep(self, i: int, mask: BandMask, keep_isolated: bool) -> np.ndarray:
         """(n,) points of cropped scan i that `mask` keeps (`keep_mask` on the cached data)."""
-        return keep_mask(self.frequencies(i, mask.n_bands), mask, keep_isolated,
-                         keep_out_of_range)
+        return keep_mask(self.frequencies(i, mask.n_bands), mask, keep_isolated)
 
     # -- persistence ---------------------------------------------------------------------------
 
@@ -170,10 +168,6 @@ def build_sequence_cache(bags: Sequence[str | Path], gt_path: str | Path,
                          progress: Callable[[int, int], None] | None = None) -> SequenceCache:
     """Read the scans, crop them as the pipeline does, compute bands for every B once."""
     counts = sorted(set(int(n) for n in band_counts))
-    if config.spectral.frequency_source != 'scan':
-        raise ConfigError("the band search caches each scan's own frequencies: it needs "
-                          "spectral.frequency_source 'scan', got "
-                          f'{config.spectral.frequency_source!r}')
     spectral = SpectralFilter.from_config(config.spectral)
     cropper = OdometryPipeline(config, record_trajectory=False)
     ground_truth = read_ground_truth(gt_path)

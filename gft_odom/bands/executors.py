@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
 from gft_odom.bands.cache import SequenceCache
-from gft_odom.bands.evaluate import BASELINE_KEY, evaluate_mask
+from gft_odom.bands.evaluate import BASELINE_KEY, evaluate_mask, shift_vector, split_shifted_key
 from gft_odom.bands.masks import parse_mask_key
 from gft_odom.config import GftOdomConfig
 from gft_odom.errors import ConfigError, GftOdomError
@@ -23,9 +23,15 @@ log = logging.getLogger(__name__)
 
 
 def evaluate_key(sequences: Sequence[SequenceCache], config: GftOdomConfig, key: str) -> dict:
-    """Evaluate a mask given by its key ('baseline' for the unfiltered pipeline)."""
-    mask = None if key == BASELINE_KEY else parse_mask_key(key)
-    return evaluate_mask(sequences, config, mask)
+    """Evaluate a mask given by its key ('baseline' for the unfiltered pipeline; a shifted
+    key, 'B2:11@0.333', runs the scans shifted by that fraction of a source voxel)."""
+    base, fraction = split_shifted_key(key)
+    mask = None if base == BASELINE_KEY else parse_mask_key(base)
+    if fraction is None:
+        return evaluate_mask(sequences, config, mask)
+    row = evaluate_mask(sequences, config, mask, shift_vector(config, fraction))
+    row.update(key=key, shift_voxel_fraction=fraction)
+    return row
 
 
 class InProcessExecutor:

@@ -53,6 +53,11 @@ def exhaustive_masks(min_bands: int, max_bands: int) -> list[BandMask]:
     return masks
 
 
+def identity_masks(band_counts: Iterable[int]) -> list[BandMask]:
+    """The identity (every band kept) at each band count: the candidate a filter must beat."""
+    return [BandMask.all_pass(n) for n in sorted(set(band_counts))]
+
+
 def keep_fingerprint(keeps: Iterable[np.ndarray]) -> str:
     """Hash of the points a mask keeps, one (n,) bool array per scan (the caller's order)."""
     digest = hashlib.blake2b(digest_size=16)

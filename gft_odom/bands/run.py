@@ -2,8 +2,10 @@
 
 Output folder:
   results.jsonl           every evaluated mask (training bags), appended as they finish
+  spread.jsonl            the identity and the best mask run on shifted scans (the spread)
   ranking.csv             all masks best first, with the baseline on top (in-sample)
-  summary.json / .md      chosen mask: in-sample vs baseline, held-out vs baseline
+  summary.json / .md      chosen mask: in-sample vs baseline, held-out vs baseline, and the
+                          decision against the identity (both scores, the spread, why)
   best_mask.yaml          full effective config with the chosen mask (params-file format)
   fig6_top_masks.png, fig7_band_correlation.png, fig8_narrow_intervals.png
   cache/*.npz             per-point bands of every scan for B = min..max (reused on restart)
@@ -22,6 +24,7 @@ from gft_odom.bands.analysis import (
     ranked,
     write_ranking_csv,
 )
+from gft_odom.bands.choice import choose
 from gft_odom.bands.evaluate import BASELINE_KEY, config_for_mask
 from gft_odom.bands.masks import parse_mask_key
 from gft_odom.bands.search import (
@@ -52,9 +55,11 @@ def run_band_search(train: Sequence[SequenceSpec], config: GftOdomConfig, out_di
                     max_new_results: int | None = None) -> dict:
     """Search masks on `train`, write the outputs, score the chosen mask on `test`.
 
+    The chosen mask is the best in-sample one only when it beats the identity by more than
+    the measured spread (`bands.choice`); else the identity, every band kept.
     `progress(stage, done, total)` reports the cache building and the mask evaluations.
     `max_new_results` stops after that many new evaluations (what a kill does; for tests and
-    for spreading a long search over several sessions); the summary is then not written.
+    for spreading a long search over several runs); the summary is then not written.
     """
     search_cfg.validate()
     config.validate()
@@ -77,15 +82,18 @@ def run_band_search(train: Sequence[SequenceSpec], config: GftOdomConfig, out_di
                                      stage('masks'))
         else:
             rows = search.smart(search_cfg, stage('masks'))
+        if BASELINE_KEY not in rows:
+            rows[BASELINE_KEY] = search.evaluate([None])[BASELINE_KEY]
+        chosen_row, decision = choose(search, rows, search_cfg.min_bands,
+                                      search_cfg.spread_shifts)
     except SearchStopped:
         return {'stopped_after': max_new_results}
     finally:
         search.close()
-    rows.setdefault(BASELINE_KEY, search.evaluate([None])[BASELINE_KEY])
     mode = config.registration.mode
 
     order = ranked(list(rows.values()))
-    chosen = parse_mask_key(order[0]['key'])
+    chosen = parse_mask_key(chosen_row['key'])
     held = None
     if test:
         test_caches, _ = prepare_caches(
@@ -93,7 +101,8 @@ def run_band_search(train: Sequence[SequenceSpec], config: GftOdomConfig, out_di
             (lambda n, d, t: progress(f'frequencies {n} (test)', d, t)) if progress else None)
         held = held_out(test_caches, config, chosen)
         write_json(out / 'held_out.json', {'label': HELD_OUT, **held})
-    summary = summarise(rows, held, mode, search_cfg.strategy, search.n_evaluated)
+    summary = summarise(rows, held, mode, search_cfg.strategy, search.n_evaluated,
+                        chosen_row, decision)
     summary['search'] = {'min_bands': search_cfg.min_bands, 'max_bands': search_cfg.max_bands,
                          'train': [c.name for c in train_caches],
                          'test': [s.label for s in test],
@@ -106,8 +115,9 @@ def run_band_search(train: Sequence[SequenceSpec], config: GftOdomConfig, out_di
         out / 'best_mask.yaml', config_for_mask(config, chosen),
         header=(f'Band mask chosen by gft-odom search-bands ({search_cfg.strategy}, '
                 f'registration mode {mode}) on {", ".join(c.name for c in train_caches)}.\n'
-                f'In-sample ATE RMSE {order[0]["ate_rmse_m"]:.4f} m. Held-out: see '
-                'summary.json.\nLoad with filter_odom_node --ros-args --params-file THIS or '
+                f'In-sample ATE RMSE {_m(chosen_row["ate_rmse_m"])} m, the '
+                f'{decision["chosen"]}:\n{decision["reason"]}.\nHeld-out: see summary.json.\n'
+                'Load with filter_odom_node --ros-args --params-file THIS or '
                 'gft-odom replay --config THIS.'))
     if figures:
         from gft_odom.bands.plots import (
@@ -125,6 +135,10 @@ def run_band_search(train: Sequence[SequenceSpec], config: GftOdomConfig, out_di
                                              search_cfg.n_intervals),
                              search_cfg.top_k_intervals, label)
     return summary
+
+
+def _m(value) -> str:
+    return '-' if value is None else f'{value:.4f}'
 
 
 def _json_safe(value):
@@ -148,12 +162,17 @@ def summary_markdown(summary: dict) -> str:
                 f'{f(change, "+.1f")} % | {f(c["paper_mse_m2"])} | '
                 f'{f(c["points_kept_fraction"], ".3f")} | {c["fallbacks"]} |')
 
-    m = summary['chosen_mask']
+    m, d = summary['chosen_mask'], summary['decision']
     lines = [
         f'# Band search ({summary["strategy"]}, registration mode '
         f'{summary["registration_mode"]})', '',
         f'Chosen mask: n_bands = {m["n_bands"]}, band_mask = {m["band_mask"]} '
-        f'("{m["bitstring"]}"), ranked on the training bags.', '',
+        f'("{m["bitstring"]}"), the {d["chosen"]}: {d["reason"]}.', '',
+        f'In-sample ATE RMSE: identity (every band, {d["identity_key"]}) '
+        f'{_m(d["identity_ate_rmse_m"])} m, best mask {d["best_key"]} '
+        f'{_m(d["best_ate_rmse_m"])} m, run-to-run spread {_m(d["spread_m"])} m '
+        f'({d["spread_method"]}). A mask is chosen only when it beats the identity by more '
+        'than the spread.', '',
         f'Masks considered {summary["masks_considered"]}, evaluated (after deduplication) '
         f'{summary["masks_evaluated"]}.', '',
         '| numbers | ATE RMSE m (mask) | ATE RMSE m (unfiltered) | change | paper MSE m^2 | '

@@ -3,7 +3,8 @@
 Results are appended to `results.jsonl` in the output folder one line per mask as soon as the
 mask is done; a restarted search reads them back and evaluates only what is missing (a line
 cut short by a kill is ignored). `search.json` records what the results depend on, so results
-of another configuration are never mixed in.
+of another configuration are never mixed in. The identity mask (every band) is always among
+the candidates; the runs that measure the spread go to `spread.jsonl`, apart from the ranking.
 """
 
 from __future__ import annotations
@@ -19,11 +20,17 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from gft_odom.bands.analysis import correlation_at_nu, correlation_table, ranked
+from gft_odom.bands.analysis import correlation_at_nu, correlation_table
 from gft_odom.bands.cache import SequenceCache, load_or_build
-from gft_odom.bands.evaluate import BASELINE_KEY, evaluate_mask, score
+from gft_odom.bands.evaluate import BASELINE_KEY, evaluate_mask, score, shifted_key
 from gft_odom.bands.executors import make_executor
-from gft_odom.bands.masks import exhaustive_masks, keep_fingerprint, mask_key, parse_mask_key
+from gft_odom.bands.masks import (
+    exhaustive_masks,
+    identity_masks,
+    keep_fingerprint,
+    mask_key,
+    parse_mask_key,
+)
 from gft_odom.config import GftOdomConfig, flatten
 from gft_odom.core.spectral.bands import BandMask
 from gft_odom.errors import ConfigError
@@ -52,6 +59,9 @@ class BandSearchConfig:
     top_k_figure: int = 10
     top_k_intervals: int = 20
     n_intervals: int = 1000
+    # The spread's runs: every training scan shifted by these fractions of a source voxel
+    # (x, y and z), the identity and the best mask run again (see `bands.choice`).
+    spread_shifts: tuple[float, ...] = (1.0 / 3.0, 2.0 / 3.0)
 
     def validate(self) -> None:
         """Raise ConfigError naming the first setting that cannot work."""
@@ -71,6 +81,9 @@ class BandSearchConfig:
                      'n_intervals'):
             if getattr(self, name) < 1:
                 raise ConfigError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if not self.spread_shifts or not all(0.0 < f < 1.0 for f in self.spread_shifts):
+            raise ConfigError(f'spread_shifts must be fractions of a voxel in (0, 1), got '
+                              f'{self.spread_shifts}')
 
 
 @dataclass(frozen=True)
@@ -168,6 +181,7 @@ class BandSearch:
         self.ray_address = ray_address
         self._check_meta()
         self.log = ResultsLog(self.out / 'results.jsonl')
+        self.spread_log = ResultsLog(self.out / 'spread.jsonl')
         self._fingerprints: dict[str, str] = {}
         self._by_fingerprint: dict[str, str] = {
             r['fingerprint']: k for k, r in self.log.rows.items()
@@ -193,7 +207,7 @@ class BandSearch:
         """Hash of the points `mask` keeps in every training scan (equal: same result)."""
         key = mask_key(mask)
         if key not in self._fingerprints:
-            flags = (self.config.spectral.keep_isolated, self.config.spectral.keep_out_of_range)
+            flags = (self.config.spectral.keep_isolated,)
             self._fingerprints[key] = keep_fingerprint(
                 seq.keep(i, mask, *flags) for seq in self.train for i in range(len(seq)))
         return self._fingerprints[key]
@@ -239,6 +253,18 @@ class BandSearch:
                     progress(done, total)
         return {k: self.log.rows[k] for k in wanted}
 
+    def evaluate_shifted(self, keys: Sequence[str], fractions: Sequence[float]
+                         ) -> dict[str, dict]:
+        """Rows of the masks `keys` run with every scan shifted by each of `fractions` of a
+        source voxel, keyed by `shifted_key`; evaluated only when not in `spread.jsonl`."""
+        wanted = [shifted_key(k, f) for k in keys for f in fractions]
+        todo = [k for k in dict.fromkeys(wanted) if k not in self.spread_log]
+        if todo:
+            for row in self._get_executor().run(todo):
+                row['evaluated_on'] = 'train'
+                self.spread_log.append(row)
+        return {k: self.spread_log.rows[k] for k in wanted}
+
     @staticmethod
     def _duplicate_row(rep: dict, mask: BandMask, fp: str) -> dict:
         row = dict(rep, key=mask_key(mask), n_bands=mask.n_bands, mask=mask.as_bitstring(),
@@ -262,8 +288,11 @@ class BandSearch:
 
     def exhaustive(self, min_bands: int, max_bands: int,
                    progress: Callable[[int, int], None] | None = None) -> dict[str, dict]:
-        """Every non-empty combination for B in [min_bands, max_bands], plus the baseline."""
-        return self.evaluate([None, *exhaustive_masks(min_bands, max_bands)], progress)
+        """Every non-empty combination for B in [min_bands, max_bands], plus the baseline;
+        the identities first, so the identity of min_bands stands for every all-pass twin."""
+        counts = range(min_bands, max_bands + 1)
+        return self.evaluate([None, *identity_masks(counts),
+                              *exhaustive_masks(min_bands, max_bands)], progress)
 
     def smart(self, cfg: BandSearchConfig,
               progress: Callable[[int, int], None] | None = None) -> dict[str, dict]:
@@ -342,11 +371,10 @@ def improvement_pct(row: dict, baseline: dict) -> float:
     return 100.0 * (a - b) / b if math.isfinite(a) and b > 0 and math.isfinite(b) else math.nan
 
 
-def summarise(rows: dict[str, dict], held: dict | None, mode: str,
-              strategy: str, n_evaluated: int) -> dict:
-    """The JSON summary: best in-sample mask beside the baseline, and the held-out result."""
-    order = ranked(list(rows.values()))
-    best = order[0]
+def summarise(rows: dict[str, dict], held: dict | None, mode: str, strategy: str,
+              n_evaluated: int, chosen: dict, decision: dict) -> dict:
+    """The JSON summary: the chosen mask beside the baseline in-sample and held-out, and the
+    decision against the identity (both scores, the spread, why)."""
     base = rows.get(BASELINE_KEY)
     summary = {
         'registration_mode': mode,
@@ -355,11 +383,15 @@ def summarise(rows: dict[str, dict], held: dict | None, mode: str,
         'masks_evaluated': sum(1 for r in rows.values()
                                if r['key'] != BASELINE_KEY and not r.get('duplicate_of')),
         'masks_evaluated_this_run': n_evaluated,
-        'chosen_mask': {'n_bands': best['n_bands'], 'band_mask': best['bands'],
-                        'bitstring': best['mask']},
-        'in_sample': {'label': IN_SAMPLE, 'chosen': _brief(best),
+        'chosen_mask': {'n_bands': chosen['n_bands'], 'band_mask': chosen['bands'],
+                        'bitstring': chosen['mask'], 'is_identity':
+                        decision['chosen'] == 'identity'},
+        'decision': decision,
+        'in_sample': {'label': IN_SAMPLE, 'chosen': _brief(chosen),
+                      'best': _brief(rows[decision['best_key']]),
+                      'identity': _brief(rows[decision['identity_key']]),
                       'baseline': _brief(base) if base else None,
-                      'change_vs_baseline_pct': improvement_pct(best, base) if base else None},
+                      'change_vs_baseline_pct': improvement_pct(chosen, base) if base else None},
     }
     if held is not None:
         summary['held_out'] = {'label': HELD_OUT, 'chosen': _brief(held['chosen']),

@@ -1,14 +1,16 @@
-"""The long, varied drives of the benchmark of record: which ones, and their simulated cache.
+"""The long drives of the benchmark of record: which ones, and their simulated cache.
 
-Training drives are the only ones any choice of ours was made on; the held-out drives (other
-seeds, every route) are only ever reported. The new held-out drives (seeds 211-214, added after
-every choice so far) and the edge drives (seeds 221-222: edge_lawnmower, a fast lawn-mower
-that starts on the block's edge and turns out into an open headland) were never used for a
-choice either: they are only reported. The confirmation drives (seeds 231-234) check a change
-that held-out figures suggested, on seeds no one had seen. Each drive is simulated once with
-`simulate_to_bag(..., vary=True)` into a cache outside the repository (default
-`~/.cache/gft_odom/drives`, or `$GFT_ODOM_DRIVES`); a drive whose `sim_metadata.json` is
-complete is reused.
+- TRAINING_DRIVES (seeds 111-125): the only drives choices of the registration were made on.
+- RECORD_DRIVES (201-206, 211-214): ten varied drives, every route, only ever reported.
+- NEVER_USED_DRIVES (231-234): four more, run only to confirm what the record suggested.
+- EDGE_DRIVES (221-228, 241-244, 251-254, 261-264): twenty fast lawn-mowers that start on the
+  block's edge and turn out into an open headland. EDGE_TUNED_SEEDS are the ones a rule of
+  the turn check or of a slid match was chosen on; the others were only reported.
+- STRESS_DRIVES (301-306): the stress family, every quantity outside the varied ranges.
+
+Each drive is simulated once with `simulate_to_bag(..., vary=True)` into a cache outside the
+repository (default `~/.cache/gft_odom/drives`, or `$GFT_ODOM_DRIVES`); a drive whose
+`sim_metadata.json` is complete is reused.
 """
 
 from __future__ import annotations
@@ -42,40 +44,22 @@ class Drive:
         return f'{self.route}-{self.seed}'
 
 
-# Seeds 1xx: training (the drift study of docs/benchmarks.md); 2xx: held out. 118, 121, 125 are
-# the first seeds after 114 whose draw is fast (> 1.4 m/s), turns fast (> 1 rad/s) and pivots
-# (turn radius < 0.5 m): none of 111-114 pivots, and a fast pivot is where we lost track.
+# 118, 121 and 125 are the first seeds after 114 whose draw is fast (> 1.4 m/s), turns fast
+# (> 1 rad/s) and pivots (turn radius < 0.5 m): none of 111-114 pivots.
 TRAINING_DRIVES = (Drive('lawnmower', 111, 200.0), Drive('spiral', 112, 200.0),
                    Drive('every_other_row', 113, 200.0), Drive('out_and_back', 114, 200.0),
                    Drive('every_other_row', 118, 150.0), Drive('lawnmower', 121, 150.0),
                    Drive('every_other_row', 125, 150.0))
-HELD_OUT_DRIVES = (Drive('lawnmower', 201, 280.0), Drive('every_other_row', 202, 280.0),
-                   Drive('spiral', 203, 280.0), Drive('out_and_back', 204, 280.0),
-                   Drive('lawnmower', 205, 280.0), Drive('spiral', 206, 280.0))
-NEW_HELD_OUT_DRIVES = (Drive('lawnmower', 211, 280.0), Drive('every_other_row', 212, 280.0),
-                       Drive('spiral', 213, 280.0), Drive('out_and_back', 214, 280.0))
-EDGE_DRIVES = (Drive('edge_lawnmower', 221, 280.0), Drive('edge_lawnmower', 222, 280.0))
-# Seeds 231-234, added in session 16 to confirm (or refute) a change first seen on held-out
-# figures: no choice was made on them before they were run.
-CONFIRM_DRIVES = (Drive('lawnmower', 231, 280.0), Drive('every_other_row', 232, 280.0),
-                  Drive('spiral', 233, 280.0), Drive('out_and_back', 234, 280.0))
-# Seeds 223-224, added in session 20 after the turn check was designed on edge drive 221:
-# edge routes no choice was made on.
-EDGE_CONFIRM_DRIVES = (Drive('edge_lawnmower', 223, 280.0), Drive('edge_lawnmower', 224, 280.0))
-# Seeds 225-228, added in session 24 after the turned guesses' own deskew was chosen on edge
-# drives 221-224: edge routes no choice was made on.
-EDGE_NEW_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (225, 226, 227, 228))
-# Seeds 241-244, added in session 27 after the turn check's screen was chosen on edge drives
-# 221-224 and 227: edge routes no choice was made on.
-EDGE_SCREEN_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (241, 242, 243, 244))
-# Seeds 251-254, added later in session 27 (the screen held out again; the frequency's share
-# at the edge): edge routes no choice was made on.
-EDGE_LATE_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (251, 252, 253, 254))
-# Seeds 261-264, added in session 28 and run with the slid-match rules only after they were
-# chosen on edge drives 221, 226, 242 and 243: edge routes no choice was made on.
-EDGE_SLID_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (261, 262, 263, 264))
-# Seeds 301-306: the stress family (other canopy models, row and tree spacings, mount heights,
-# speeds, wobble and ground outside every varied range), 1.56 km never used for a choice.
+RECORD_DRIVES = tuple(Drive(route, seed, 280.0) for route, seed in (
+    ('lawnmower', 201), ('every_other_row', 202), ('spiral', 203), ('out_and_back', 204),
+    ('lawnmower', 205), ('spiral', 206), ('lawnmower', 211), ('every_other_row', 212),
+    ('spiral', 213), ('out_and_back', 214)))
+NEVER_USED_DRIVES = tuple(Drive(route, seed, 280.0) for route, seed in (
+    ('lawnmower', 231), ('every_other_row', 232), ('spiral', 233), ('out_and_back', 234)))
+EDGE_DRIVES = tuple(Drive('edge_lawnmower', seed, 280.0) for seed in (
+    221, 222, 223, 224, 225, 226, 227, 228, 241, 242, 243, 244, 251, 252, 253, 254,
+    261, 262, 263, 264))
+EDGE_TUNED_SEEDS = (221, 222, 223, 224, 226, 227, 242, 243)
 STRESS_DRIVES = tuple(Drive(route, seed, 260.0, 'stress') for route, seed in (
     ('lawnmower', 301), ('every_other_row', 302), ('spiral', 303), ('out_and_back', 304),
     ('lawnmower', 305), ('every_other_row', 306)))

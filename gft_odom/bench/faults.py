@@ -19,8 +19,8 @@ from typing import Callable
 import numpy as np
 
 from gft_odom.config import GftOdomConfig
+from gft_odom.core.alignment import umeyama_alignment
 from gft_odom.core.constants import NS_PER_S, ns_to_sec_nanosec
-from gft_odom.core.metrics import umeyama_alignment
 from gft_odom.core.types import Scan
 from gft_odom.io.pointcloud2 import decode_scan, encode_cloud
 from gft_odom.pipeline import FrameResult, OdometryPipeline

@@ -39,39 +39,6 @@ from gft_odom.replay import estimate_for_ground_truth
 RPE_SHORT_M = 10.0
 KITTI_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 RECORD_LENGTHS_M = (RPE_SHORT_M,) + KITTI_LENGTHS_M
-# Config fields added after results were cached, at the value that does what the code did
-# before them (the same poses): left out of a result's cache key at that value, so adding an
-# option does not throw away every cached run of ours.
-KEY_NEUTRAL_VALUES = {('registration', 'map_update'): 'inline',
-                      ('registration', 'rough_kernel_scale_m'): 0.0,
-                      ('registration', 'rough_gate_ratio'): 0.0,
-                      ('registration', 'refine_correspondence_distance_m'): 0.0,
-                      ('registration', 'turn_check'): False,
-                      ('registration', 'turn_check_fitness_margin'): 0.03,
-                      ('registration', 'turn_guess_deskew'): False,
-                      ('registration', 'turn_check_gate_m'): 0.0,
-                      ('registration', 'turn_check_screen_iterations'): 0,
-                      ('registration', 'turn_check_share_ratio'): 0.0,
-                      ('registration', 'reacquisition_by_share'): False,
-                      ('registration', 'reacquisition_beats_refused'): False,
-                      ('registration', 'plausible_from_previous_trusted'): False,
-                      ('registration', 'turn_continue_min_rad'): 0.0,
-                      ('registration', 'turn_continue_iterations'): 70,
-                      ('registration', 'adaptive_kernel_ratio'): 0.0,
-                      ('registration', 'adaptive_min_motion_m'): 0.1,
-                      ('registration', 'adaptive_window_scans'): 0,
-                      ('registration', 'kernel_anneal_from_m'): 0.0,
-                      ('registration', 'kernel_anneal_factor'): 0.7,
-                      ('spectral', 'planarity_neighbours'): 15,
-                      ('spectral', 'planarity_rough_variation'): 0.1,
-                      ('pipeline', 'frequencies_after_pose'): True,
-                      ('registration', 'map_window_rough_view_deg'): 0.0,
-                      ('registration', 'map_smooth_view_deg'): 180.0,
-                      ('registration', 'plausible_from_refused'): False,
-                      ('registration', 'rough_voxel_size_m'): 0.0,
-                      ('spectral', 'range_lowpass_alpha'): 0.0,
-                      ('spectral', 'range_lowpass_sigma_m'): 0.05,
-                      ('registration', 'voxel_grid_offset_m'): 0.0}
 STAMP_NOTE = (
     'Every method is stamped where its pose holds (ours: the stamp it deskews to; a sweep '
     'fitted as one rigid cloud: mid-sweep; kiss-icp: the sweep end it deskews to; CT-ICP: its '
@@ -186,21 +153,12 @@ def pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
     # kiss-icp's and the peers' odometry ignores our config; their scoring does not, so their
     # key holds the evaluation and ground-truth sections (a changed scoring re-measures them).
     config = method_config(entry.config(base), entry.method)
-    keyed = (_keyed_config(config) if _is_ours(entry.method) else
+    keyed = (dataclasses.asdict(config) if _is_ours(entry.method) else
              [dataclasses.asdict(config.evaluation), dataclasses.asdict(config.ground_truth)])
     key = json.dumps([entry.label, entry.method, list(entry.overrides), keyed],
                      sort_keys=True, default=str)
     digest = hashlib.sha1(key.encode()).hexdigest()[:12]
     return Path(cache_dir) / f'{sequence.name}__{digest}.npz'
-
-
-def _keyed_config(config: GftOdomConfig) -> dict:
-    """The config as a cache key: every field, but those at their `KEY_NEUTRAL_VALUES`."""
-    keyed = dataclasses.asdict(config)
-    for (section, name), neutral in KEY_NEUTRAL_VALUES.items():
-        if keyed[section].get(name) == neutral:
-            del keyed[section][name]
-    return keyed
 
 
 def _with_end_error(metrics: dict, curve: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -64,7 +64,7 @@ def _per_sequence_ratio(bench: BenchRun, filtered: str, plain: str) -> list[floa
 
 
 def check_targets(bench: BenchRun, summary: dict[str, dict]) -> list[dict]:
-    """The issue's targets, each with the measured value and met / missed."""
+    """The benchmark's targets, each with the measured value and met / missed."""
     targets = []
     for mode in ('paper', 'default'):
         plain, filtered = mode, f'{mode}+gft'

@@ -1,4 +1,6 @@
-"""Trajectory evaluation: association, Umeyama alignment, ATE, the paper's MSE and RPE drift.
+"""Trajectory evaluation: ATE, the stamp audit, the paper's MSE and RPE drift.
+
+Association in time and Umeyama alignment are in `alignment`.
 
 CitrusFarm's own scoring (UCR-Robotics/Odometry-Benchmark) is here too: the *mean* position
 error after a rigid (Horn/Umeyama, no scale) alignment of the positions, the estimate first moved
@@ -26,7 +28,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gft_odom.core.constants import NS_PER_S, SCAN_PERIOD_S
+from gft_odom.core.alignment import (
+    DEFAULT_MAX_DIFF_S,
+    DEFAULT_MAX_GAP_S,
+    MATCH_METHODS,
+    MIN_MATCHED,
+    Matched,
+    check_sorted,
+    interpolate_positions,
+    match_trajectories,
+    rotation_angles_rad,
+    similarity_matrix,
+    time_range,
+    umeyama_alignment,
+)
+from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.geometry import invert_transform
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.errors import ConfigError, GroundTruthError
@@ -34,18 +50,10 @@ from gft_odom.errors import ConfigError, GroundTruthError
 logger = logging.getLogger(__name__)
 
 ATE_MODES = ('se3', 'sim3', 'position')
-MATCH_METHODS = ('auto', 'nearest', 'interpolate')
 DEFAULT_LENGTHS_M = (5.0, 10.0, 20.0, 50.0)
 DEFAULT_MODE = 'position'
-DEFAULT_MAX_DIFF_S = SCAN_PERIOD_S / 2
 DEFAULT_MATCH = 'nearest'
-DEFAULT_MAX_GAP_S = 1.0
 
-# Umeyama needs a spread in two directions; below this ratio of the second to the first singular
-# value of the centred points they are treated as collinear (the rotation about the line is
-# then fixed by noise alone, not by the data).
-_COLLINEAR_RTOL = 1e-9
-_MIN_MATCHED = 3
 
 
 @dataclass(frozen=True)
@@ -90,200 +98,10 @@ def _check_args(mode: str = DEFAULT_MODE, max_diff_s: float = DEFAULT_MAX_DIFF_S
         raise ConfigError(f'lengths_m must be a non-empty list of numbers > 0, got {lengths}')
 
 
-def _check_sorted(traj: Trajectory, name: str) -> None:
-    if len(traj) > 1 and np.any(np.diff(traj.stamps_ns) < 0):
-        first = int(np.flatnonzero(np.diff(traj.stamps_ns) < 0)[0])
-        raise GroundTruthError(f'{name} trajectory stamps are not sorted in time '
-                               f'(stamp {first + 1} is earlier than stamp {first})')
-
-
-def _time_range(traj: Trajectory) -> str:
-    if len(traj) == 0:
-        return 'empty'
-    return f'{traj.stamps_s[0]:.3f}..{traj.stamps_s[-1]:.3f} s ({len(traj)} poses)'
-
-
-# --- association -----------------------------------------------------------------------------
-
-def associate(est: Trajectory, ref: Trajectory,
-              max_diff_s: float = DEFAULT_MAX_DIFF_S) -> tuple[np.ndarray, np.ndarray]:
-    """Pair each estimate stamp with the nearest reference stamp within `max_diff_s`.
-
-    Each reference pose is used at most once (the estimate closest in time keeps it, the
-    earlier one on a tie), so a slow reference is not counted several times. Returns two int
-    arrays (est_idx, ref_idx), increasing, of equal length. Integer nanoseconds throughout, so
-    no float rounding decides a match.
-    """
-    _check_args(max_diff_s=max_diff_s)
-    _check_sorted(est, 'estimated')
-    _check_sorted(ref, 'reference')
-    empty = np.zeros(0, dtype=np.int64)
-    if len(est) == 0 or len(ref) == 0:
-        return empty, empty.copy()
-    max_diff_ns = int(round(max_diff_s * NS_PER_S))
-    s_est, s_ref = est.stamps_ns, ref.stamps_ns
-    upper = np.searchsorted(s_ref, s_est, side='left')
-    right = np.minimum(upper, len(ref) - 1)
-    left = np.maximum(upper - 1, 0)
-    dt_right = np.abs(s_ref[right] - s_est)
-    dt_left = np.abs(s_est - s_ref[left])
-    nearest = np.where(dt_right < dt_left, right, left)
-    dt = np.minimum(dt_right, dt_left)
-    within = dt <= max_diff_ns
-    est_idx = np.flatnonzero(within).astype(np.int64)
-    ref_idx = nearest[within].astype(np.int64)
-    dt = dt[within]
-    # One estimate per reference pose: sort by (ref, dt, est) and keep the first of each ref.
-    order = np.lexsort((est_idx, dt, ref_idx))
-    _, first = np.unique(ref_idx[order], return_index=True)
-    keep = np.sort(order[first])
-    return est_idx[keep], ref_idx[keep]
-
-
-def interpolate_positions(ref: Trajectory, stamps_ns: np.ndarray,
-                          max_gap_s: float = DEFAULT_MAX_GAP_S) -> np.ndarray:
-    """Reference positions linearly interpolated at `stamps_ns`, (M, 3).
-
-    For a ground truth at another rate than the scans (GPS at 1-5 Hz). Rows are NaN outside the
-    reference's time span and inside gaps longer than `max_gap_s` (a GPS dropout is not
-    bridged by a straight line). Orientations are not interpolated: this serves the
-    position-only metrics.
-    """
-    _check_args(max_gap_s=max_gap_s)
-    _check_sorted(ref, 'reference')
-    stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-    out = np.full((stamps_ns.shape[0], 3), np.nan)
-    if len(ref) == 0 or stamps_ns.shape[0] == 0:
-        return out
-    # Seconds relative to the first reference stamp keep float64 precision at the ns level.
-    t_ref = (ref.stamps_ns - ref.stamps_ns[0]).astype(np.float64) * 1e-9
-    t_query = (stamps_ns - ref.stamps_ns[0]).astype(np.float64) * 1e-9
-    upper = np.searchsorted(ref.stamps_ns, stamps_ns, side='left')
-    exact = (upper < len(ref)) & (ref.stamps_ns[np.minimum(upper, len(ref) - 1)] == stamps_ns)
-    inside = (upper > 0) & (upper < len(ref))
-    gap_s = np.full(stamps_ns.shape[0], np.inf)
-    gap_s[inside] = t_ref[upper[inside]] - t_ref[upper[inside] - 1]
-    valid = exact | (inside & (gap_s <= max_gap_s))
-    positions = ref.positions_xyz
-    for axis in range(3):  # three axes, not a loop over points
-        out[valid, axis] = np.interp(t_query[valid], t_ref, positions[:, axis])
-    return out
-
-
-@dataclass
-class _Matched:
-    """Poses of est and ref at matched instants (ref rotations only when they were read)."""
-
-    est_idx: np.ndarray
-    p_est: np.ndarray
-    p_ref: np.ndarray
-    poses_est: np.ndarray
-    poses_ref: np.ndarray | None
-
-
 def _match(est: Trajectory, ref: Trajectory, max_diff_s: float, match: str, max_gap_s: float,
-           need_orientation: bool) -> _Matched:
+           need_orientation: bool) -> Matched:
     _check_args(max_diff_s=max_diff_s, match=match, max_gap_s=max_gap_s)
-    at_ends = match == 'auto'
-    if match == 'auto':
-        match = 'nearest' if need_orientation else 'interpolate'
-    if match == 'nearest':
-        est_idx, ref_idx = associate(est, ref, max_diff_s)
-        p_ref = ref.positions_xyz[ref_idx]
-        poses_ref = ref.poses[ref_idx] if need_orientation else None
-        how = f'within {max_diff_s} s'
-    else:
-        if need_orientation:
-            raise ConfigError("match='interpolate' gives positions only; orientation metrics "
-                              "(mode='se3', use_orientation=True) need match='nearest'")
-        _check_sorted(est, 'estimated')
-        p_all = interpolate_positions(ref, est.stamps_ns, max_gap_s)
-        if at_ends and len(ref):
-            # 'auto': a pose just outside the reference's span (within max_diff_s of its first
-            # or last sample) takes that sample, as 'nearest' would.
-            limit_ns = max_diff_s * 1e9
-            for end in (0, len(ref) - 1):
-                near = (~np.isfinite(p_all).all(axis=1)) & (
-                    np.abs(est.stamps_ns - ref.stamps_ns[end]) <= limit_ns)
-                p_all[near] = ref.positions_xyz[end]
-        est_idx = np.flatnonzero(np.isfinite(p_all).all(axis=1))
-        p_ref = p_all[est_idx]
-        poses_ref = None
-        how = f'by interpolation (gaps <= {max_gap_s} s)'
-    if est_idx.shape[0] < _MIN_MATCHED:
-        raise GroundTruthError(
-            f'only {est_idx.shape[0]} estimated stamps overlap the reference {how}; need at '
-            f'least {_MIN_MATCHED}. Estimate: {_time_range(est)}; reference: {_time_range(ref)}')
-    p_est = est.positions_xyz[est_idx]
-    for name, p in (('estimated', p_est), ('reference', p_ref)):
-        if not np.isfinite(p).all():
-            raise GroundTruthError(f'{name} trajectory has non-finite positions at matched stamps')
-    return _Matched(est_idx, p_est, p_ref, est.poses[est_idx], poses_ref)
-
-
-# --- alignment -------------------------------------------------------------------------------
-
-def umeyama_alignment(src: np.ndarray, dst: np.ndarray,
-                      with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least-squares (R, t, s) minimising sum |dst - (s R src + t)|^2 (Umeyama 1991).
-
-    R is a proper rotation even when a reflection would fit better (the sign of the smallest
-    singular direction is flipped), so planar trajectories align correctly. s is 1.0 unless
-    `with_scale`. Fewer than 3 points, non-finite values or collinear point sets raise
-    GroundTruthError: there the rotation is not determined by the data.
-    """
-    src = np.asarray(src, dtype=float)
-    dst = np.asarray(dst, dtype=float)
-    if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape:
-        raise GroundTruthError(f'alignment needs two (N, 3) point sets of equal shape, got '
-                               f'{src.shape} and {dst.shape}')
-    n = src.shape[0]
-    if n < _MIN_MATCHED:
-        raise GroundTruthError(f'alignment needs at least {_MIN_MATCHED} point pairs, got {n}')
-    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
-        raise GroundTruthError('alignment got non-finite (NaN/Inf) points')
-    mean_src = src.mean(axis=0)
-    mean_dst = dst.mean(axis=0)
-    centred_src = src - mean_src
-    centred_dst = dst - mean_dst
-    for name, centred in (('estimated', centred_src), ('reference', centred_dst)):
-        spread = np.linalg.svd(centred, compute_uv=False)
-        if not spread[1] > _COLLINEAR_RTOL * spread[0]:
-            raise GroundTruthError(
-                f'alignment is degenerate: the {name} positions are collinear or identical '
-                f'(spread singular values {spread[0]:.3g}, {spread[1]:.3g} m); the rotation '
-                'about the line is not determined')
-    covariance = centred_dst.T @ centred_src / n
-    u, d, vt = np.linalg.svd(covariance)
-    if not d[1] > _COLLINEAR_RTOL**2 * d[0]:
-        raise GroundTruthError('alignment is degenerate: the cross-covariance of the positions '
-                               f'has rank < 2 (singular values {d})')
-    signs = np.ones(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
-        signs[2] = -1.0  # best proper rotation instead of a reflection
-    rotation = (u * signs) @ vt
-    scale = 1.0
-    if with_scale:
-        variance_src = float((centred_src**2).sum()) / n
-        scale = float((d * signs).sum()) / variance_src
-    translation = mean_dst - scale * rotation @ mean_src
-    return rotation, translation, scale
-
-
-def _similarity(rotation: np.ndarray, translation: np.ndarray, scale: float) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = scale * rotation
-    T[:3, 3] = translation
-    return T
-
-
-def _rotation_angles_rad(rotations: np.ndarray) -> np.ndarray:
-    """Angles of a stack of rotation matrices, accurate near 0 (atan2, not arccos)."""
-    trace = np.trace(rotations, axis1=-2, axis2=-1)
-    skew = np.stack([rotations[..., 2, 1] - rotations[..., 1, 2],
-                     rotations[..., 0, 2] - rotations[..., 2, 0],
-                     rotations[..., 1, 0] - rotations[..., 0, 1]], axis=-1)
-    return np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (trace - 1.0))
+    return match_trajectories(est, ref, max_diff_s, match, max_gap_s, need_orientation)
 
 
 # --- absolute trajectory error ---------------------------------------------------------------
@@ -312,7 +130,7 @@ class AteResult:
         return float(self.errors_m[-1]) if self.errors_m.size else math.nan
 
 
-def _ate_from_matched(m: _Matched, mode: str) -> AteResult:
+def _ate_from_matched(m: Matched, mode: str) -> AteResult:
     rotation, translation, scale = umeyama_alignment(m.p_est, m.p_ref, with_scale=mode == 'sim3')
     p_aligned = scale * m.p_est @ rotation.T + translation
     errors = np.linalg.norm(p_aligned - m.p_ref, axis=1)
@@ -320,13 +138,14 @@ def _ate_from_matched(m: _Matched, mode: str) -> AteResult:
     if mode == 'se3':
         # Error rotation R_ref^T (R_align R_est), as evo's APE on the aligned trajectory.
         r_err = np.swapaxes(m.poses_ref[:, :3, :3], -1, -2) @ (rotation @ m.poses_est[:, :3, :3])
-        angles_deg = np.degrees(_rotation_angles_rad(r_err))
+        angles_deg = np.degrees(rotation_angles_rad(r_err))
         rotation_rmse_deg = float(np.sqrt(np.mean(angles_deg**2)))
     return AteResult(
         rmse_m=float(np.sqrt(np.mean(errors**2))), mean_m=float(errors.mean()),
         median_m=float(np.median(errors)), max_m=float(errors.max()), std_m=float(errors.std()),
         n=int(errors.shape[0]), mode=mode, scale=float(scale),
-        rotation_rmse_deg=rotation_rmse_deg, T_ref_est=_similarity(rotation, translation, scale),
+        rotation_rmse_deg=rotation_rmse_deg,
+        T_ref_est=similarity_matrix(rotation, translation, scale),
         errors_m=errors, est_idx=m.est_idx)
 
 
@@ -390,7 +209,7 @@ def stamp_audit(est: Trajectory, ref: Trajectory, shifts_s=STAMP_AUDIT_SHIFTS_S,
     stamps; only the poses matched at every shift count, so each shift scores the same poses.
     """
     _check_args(max_gap_s=max_gap_s)
-    _check_sorted(est, 'estimated')
+    check_sorted(est, 'estimated')
     shifts = np.asarray(shifts_s, dtype=float).reshape(-1)
     if shifts.size == 0 or not np.isfinite(shifts).all():
         raise ConfigError(f'stamp_audit needs finite shifts, got {list(shifts)}')
@@ -398,11 +217,11 @@ def stamp_audit(est: Trajectory, ref: Trajectory, shifts_s=STAMP_AUDIT_SHIFTS_S,
     p_ref = np.stack([interpolate_positions(ref, est.stamps_ns + d, max_gap_s)
                       for d in shifts_ns])  # (S, N, 3)
     common = np.isfinite(p_ref).all(axis=(0, 2)) & np.isfinite(est.positions_xyz).all(axis=1)
-    if int(common.sum()) < _MIN_MATCHED:
+    if int(common.sum()) < MIN_MATCHED:
         raise GroundTruthError(
             f'only {int(common.sum())} estimated stamps overlap the reference at every shift '
-            f'of {shifts.min():+.3f}..{shifts.max():+.3f} s. Estimate: {_time_range(est)}; '
-            f'reference: {_time_range(ref)}')
+            f'of {shifts.min():+.3f}..{shifts.max():+.3f} s. Estimate: {time_range(est)}; '
+            f'reference: {time_range(ref)}')
     p_est = est.positions_xyz[common]
     rmse = np.empty(shifts.size)
     for k in range(shifts.size):  # one alignment per shift, vectorised over the poses
@@ -446,7 +265,7 @@ def _segment_pairs(p_ref: np.ndarray, length_m: float) -> tuple[np.ndarray, np.n
     return first, last[first]
 
 
-def _segments_from_matched(m: _Matched, length_m: float, use_orientation: bool,
+def _segments_from_matched(m: Matched, length_m: float, use_orientation: bool,
                            p_est_aligned: np.ndarray | None) -> RpeSegments:
     first, last = _segment_pairs(m.p_ref, length_m)
     if use_orientation:
@@ -455,7 +274,7 @@ def _segments_from_matched(m: _Matched, length_m: float, use_orientation: bool,
         rel_est = invert_transform(m.poses_est[first]) @ m.poses_est[last]
         error_pose = invert_transform(rel_ref) @ rel_est
         error_m = np.linalg.norm(error_pose[:, :3, 3], axis=1)
-        rot_deg_per_m = np.degrees(_rotation_angles_rad(error_pose[:, :3, :3])) / length_m
+        rot_deg_per_m = np.degrees(rotation_angles_rad(error_pose[:, :3, :3])) / length_m
     else:
         # Displacements in the reference world after one rigid alignment of est.
         d_est = p_est_aligned[last] - p_est_aligned[first]
@@ -466,7 +285,7 @@ def _segments_from_matched(m: _Matched, length_m: float, use_orientation: bool,
                        error_m / length_m * 100.0, rot_deg_per_m)
 
 
-def _aligned_positions(m: _Matched) -> np.ndarray:
+def _aligned_positions(m: Matched) -> np.ndarray:
     rotation, translation, _ = umeyama_alignment(m.p_est, m.p_ref, with_scale=False)
     return m.p_est @ rotation.T + translation
 
@@ -481,7 +300,7 @@ def rpe_segments(est: Trajectory, ref: Trajectory, length_m: float,
     return _segments_from_matched(m, length_m, use_orientation, aligned)
 
 
-def _drift_from_matched(m: _Matched, lengths_m, use_orientation: bool) -> dict:
+def _drift_from_matched(m: Matched, lengths_m, use_orientation: bool) -> dict:
     aligned = None if use_orientation else _aligned_positions(m)
     segments = [_segments_from_matched(m, float(length), use_orientation, aligned)
                 for length in lengths_m]

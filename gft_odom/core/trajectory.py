@@ -74,3 +74,34 @@ class Trajectory:
         slerp = Slerp([0.0, 1.0], Rotation.from_matrix(poses[k:k + 2, :3, :3]))
         T[:3, :3] = slerp([a]).as_matrix()[0]
         return T
+
+
+class TrajectoryRecorder:
+    """Poses appended one at a time into arrays that double as they fill: a day's drive keeps
+    136 bytes a pose and no Python object per pose."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget every pose."""
+        self._stamps_ns = np.empty(0, dtype=np.int64)
+        self._poses = np.empty((0, 4, 4))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, stamp_ns: int, pose: np.ndarray) -> None:
+        """Add the pose `pose` (4x4) held at `stamp_ns`."""
+        if self._n == self._stamps_ns.shape[0]:
+            size = max(64, 2 * self._n)
+            self._stamps_ns = np.resize(self._stamps_ns, size)
+            self._poses = np.resize(self._poses, (size, 4, 4))
+        self._stamps_ns[self._n] = stamp_ns
+        self._poses[self._n] = pose
+        self._n += 1
+
+    def trajectory(self) -> Trajectory:
+        """A copy of the poses so far."""
+        return Trajectory(self._stamps_ns[:self._n].copy(), self._poses[:self._n].copy())

@@ -22,6 +22,19 @@ LOST_WARN, LOST_ERROR = 0.05, 0.5  # share of sweeps missed or stale
 REJECTED = ('malformed', 'empty', 'degenerate', 'out_of_order', 'clock_jump', 'failed',
             'rejected')
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+# A stamp this far from the clock is not lag but a clock mismatch (a bag without --clock).
+CLOCK_MISMATCH_S = 60.0
+
+
+def stale_scan_text(age_s: float, use_sim_time: bool, max_scan_age_s: float) -> str:
+    """Why a scan is too old: lag, or (far from now) a clock that does not match."""
+    if abs(age_s) > CLOCK_MISMATCH_S:
+        return (f'dropping scan stamped {age_s:.0f} s before the node clock: the stamps and '
+                f'the clock disagree; ' + (
+                    'use_sim_time is true: is /clock published (ros2 bag play --clock)?'
+                    if use_sim_time else 'playing a bag? play it with --clock and start the '
+                    'node with use_sim_time:=true'))
+    return f'dropping scan {age_s:.2f} s old (processing lags; max_scan_age_s={max_scan_age_s})'
 
 
 @dataclass

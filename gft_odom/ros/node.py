@@ -31,12 +31,9 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
-    HistoryPolicy,
-    QoSPolicyKind,
     QoSProfile,
     ReliabilityPolicy,
 )
-from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -44,7 +41,6 @@ from std_srvs.srv import Trigger
 from gft_odom.config import GftOdomConfig, flatten, with_values
 from gft_odom.core.constants import NODE_NAME, NS_PER_S
 from gft_odom.core.degeneracy import weakest_translation
-from gft_odom.core.geometry import poses_from_xyz_quat, xyz_quat_from_poses
 from gft_odom.core.trajectory import Trajectory
 from gft_odom.core.twist import base_twist, base_twist_covariance, unknown_twist_covariance
 from gft_odom.errors import GftOdomError
@@ -53,7 +49,8 @@ from gft_odom.pipeline import FrameResult, OdometryPipeline
 from gft_odom.replay import write_map
 from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg, transform_msg
 from gft_odom.ros.dds import use_large_message_profile
-from gft_odom.ros.diagnostics import OdometryDiagnostics, diagnostic_array
+from gft_odom.ros.diagnostics import OdometryDiagnostics, diagnostic_array, stale_scan_text
+from gft_odom.ros.input_qos import AdaptiveInput, overridable
 from gft_odom.ros.log_bridge import forward_python_logging, stop_forwarding
 from gft_odom.ros.parameters import (
     check_overrides,
@@ -71,39 +68,12 @@ DIAGNOSTICS_PERIOD_S = 1.0
 PATH_PERIOD_S = 1.0
 # Stamp differences kept to estimate the sensor period (5, 10 or 20 Hz VLP-16).
 PERIOD_SAMPLES = 21
-# A stamp this far from the clock is not lag but a clock mismatch (a bag without --clock).
-CLOCK_MISMATCH_S = 60.0
-# node.input_reliability auto: how often the publishers of the input topic are looked at.
-INPUT_QOS_CHECK_S = 0.5
-# The QoS policies a params file may override (REP 2003) on the input and the ~/ outputs.
-OVERRIDABLE = (QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY,
-               QoSPolicyKind.DURABILITY)
-RELIABILITY_NAMES = {ReliabilityPolicy.RELIABLE: 'reliable',
-                     ReliabilityPolicy.BEST_EFFORT: 'best_effort'}
-
-
-def overridable(*kinds) -> QoSOverridingOptions:
-    """REP-2003 overrides of `kinds` (declared read-only parameters, set from a params file)."""
-    return QoSOverridingOptions(kinds or OVERRIDABLE)
-
-
-def adaptive_reliability(publisher_reliabilities) -> ReliabilityPolicy | None:
-    """rosbag2's rule: reliable when every publisher is reliable, best effort when any is
-    best effort, None when there is no publisher (nothing to decide yet)."""
-    found = list(publisher_reliabilities)
-    if not found:
-        return None
-    if all(r == ReliabilityPolicy.RELIABLE for r in found):
-        return ReliabilityPolicy.RELIABLE
-    return ReliabilityPolicy.BEST_EFFORT
-
-
 def _ros_value(value):
     """Dataclass value -> a value rclpy can declare (tuples become lists)."""
     return list(value) if isinstance(value, tuple) else value
 
 
-class FilterOdomNode(Node):
+class FilterOdomNode(AdaptiveInput, Node):
     """Runs `OdometryPipeline` on every incoming scan and publishes its results."""
 
     def __init__(self, **kwargs):
@@ -117,7 +87,7 @@ class FilterOdomNode(Node):
             name: self.get_parameter(name).value for name in flatten(GftOdomConfig())})
         # Once nothing can refuse the start any more (destroy_node undoes it).
         self._log_handler = forward_python_logging(self.get_logger(), WARN_PERIOD_S)
-        self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
+        self.pipeline = OdometryPipeline(self.config)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.counters = collections.Counter()
@@ -135,12 +105,9 @@ class FilterOdomNode(Node):
         self.last_frame_id: str | None = None
         self._stamp_steps_ns: collections.deque[int] = collections.deque(maxlen=PERIOD_SAMPLES)
         self._path_dirty = False
-        # For the twist, the weakest direction and ~/save_map: the last registered frame and
-        # the whole trajectory since the start or the last reset (stamp, x y z qx qy qz qw).
+        # For the twist and the weakest direction: the last registered frame.
         self.last_result: FrameResult | None = None
         self._weak = None
-        self._trajectory_stamps_ns: list[int] = []
-        self._trajectory_xyzq: list[np.ndarray] = []
 
         # Reliable: matches both reliable (RViz's default) and best-effort subscribers; keep
         # last 1, so a slow subscriber costs the newest cloud only.
@@ -177,66 +144,6 @@ class FilterOdomNode(Node):
             f'(n_bands={self.config.spectral.n_bands}, band_mask='
             f'{list(self.config.spectral.band_mask)}), registration mode '
             f'{self.config.registration.mode}')
-
-    # -- input QoS -------------------------------------------------------------------------
-
-    @property
-    def input_topic(self) -> str:
-        """The input topic after remapping (`points` -> e.g. /velodyne_points)."""
-        return self.resolve_topic_name('points')
-
-    def _reliability_override(self) -> str | None:
-        """The REP-2003 reliability override of the input from the params file, if any."""
-        name = f'qos_overrides.{self.input_topic}.subscription.reliability'
-        override = self._parameter_overrides.get(name)
-        return None if override is None else str(override.value)
-
-    def _subscribe_input(self, steady: Clock) -> None:
-        """Forced reliability: subscribe now. Auto: subscribe as the publishers are, and look
-        again every INPUT_QOS_CHECK_S (a publisher that comes, goes or changes)."""
-        forced = self._reliability_override()
-        mode = self.config.node.input_reliability
-        if forced is not None or mode != 'auto':
-            policy = (ReliabilityPolicy.RELIABLE if mode == 'reliable'
-                      else ReliabilityPolicy.BEST_EFFORT)
-            how = ('the qos_overrides parameter' if forced is not None
-                   else f'node.input_reliability: {mode}')
-            self._create_input(policy, how)
-            return
-        self._check_input_qos()
-        if self.input_sub is None:
-            self.get_logger().info(f'input {self.input_topic}: no publisher yet; subscribing '
-                                   'as the first one is (node.input_reliability: auto)')
-        self.create_timer(INPUT_QOS_CHECK_S, self._check_input_qos, clock=steady)
-
-    def _check_input_qos(self) -> None:
-        """Auto: (re)subscribe when the publishers' reliability asks for another one."""
-        publishers = self.get_publishers_info_by_topic(self.input_topic)
-        policy = adaptive_reliability(p.qos_profile.reliability for p in publishers)
-        if policy is None or policy == self.input_reliability:
-            return
-        kinds = collections.Counter(RELIABILITY_NAMES.get(p.qos_profile.reliability, 'other')
-                                    for p in publishers)
-        self._create_input(policy, 'auto, publishers: ' + ', '.join(
-            f'{n} {k}' for k, n in sorted(kinds.items())))
-
-    def _create_input(self, policy: ReliabilityPolicy, how: str) -> None:
-        """(Re)create the input subscription with `policy` (overrides still apply)."""
-        if self.input_sub is not None:
-            self.destroy_subscription(self.input_sub)
-        qos = QoSProfile(depth=self.config.node.input_queue_depth,
-                         history=HistoryPolicy.KEEP_LAST, reliability=policy,
-                         durability=DurabilityPolicy.VOLATILE)
-        # Reliability is overridable only when the params file sets it: a parameter declared
-        # from the first choice would pin auto to it.
-        kinds = OVERRIDABLE if self._reliability_override() is not None else tuple(
-            k for k in OVERRIDABLE if k != QoSPolicyKind.RELIABILITY)
-        self.input_sub = self.create_subscription(PointCloud2, 'points', self._on_cloud, qos,
-                                                  qos_overriding_options=overridable(*kinds))
-        self.input_reliability = qos.reliability
-        self.get_logger().info(
-            f'input {self.input_topic}: {RELIABILITY_NAMES.get(qos.reliability, "?")}, depth '
-            f'{qos.depth} ({how})')
 
     # -- parameters ------------------------------------------------------------------------
 
@@ -333,18 +240,6 @@ class FilterOdomNode(Node):
                        f'sensor period estimated from the stamps: {period_s:.3f} s)')
             self.counters['missed'] += missed - 1
 
-    def _stale_text(self, age_s: float) -> str:
-        """Why a scan is too old: lag, or (far from now) a clock that does not match."""
-        if abs(age_s) > CLOCK_MISMATCH_S:
-            sim = self.get_parameter('use_sim_time').value
-            return (f'dropping scan stamped {age_s:.0f} s before the node clock: the stamps and '
-                    f'the clock disagree; ' + (
-                        'use_sim_time is true: is /clock published (ros2 bag play --clock)?'
-                        if sim else 'playing a bag? play it with --clock and start the node '
-                        'with use_sim_time:=true'))
-        return (f'dropping scan {age_s:.2f} s old (processing lags; '
-                f'max_scan_age_s={self.config.node.max_scan_age_s})')
-
     def _accept(self, scan) -> bool:
         """The pipeline's acceptance (the replay and the offline tools apply the same), then
         the node's own checks: a scan that arrives too late to matter, a changed frame."""
@@ -357,7 +252,8 @@ class FilterOdomNode(Node):
         now_ns = self.get_clock().now().nanoseconds
         age_s = (now_ns - scan.stamp_ns) * 1e-9
         if now_ns > 0 and age_s > self.config.node.max_scan_age_s:
-            self._warn('stale', self._stale_text(age_s))
+            self._warn('stale', stale_scan_text(age_s, self.get_parameter('use_sim_time').value,
+                                                self.config.node.max_scan_age_s))
             return False
         if self.last_frame_id is not None and scan.frame_id != self.last_frame_id:
             self._warn('frame_changed', f'scan frame_id changed from {self.last_frame_id!r} to '
@@ -397,9 +293,6 @@ class FilterOdomNode(Node):
                             @ result.T_world_sensor[:3, :3].T)
             self._weak = weakest_translation(result.information, R_base_world)
         self.last_result = result
-        xyz, quat = xyz_quat_from_poses(result.T_odom_base[None])
-        self._trajectory_stamps_ns.append(int(stamp_ns))
-        self._trajectory_xyzq.append(np.concatenate([xyz[0], quat[0]]))
         self.path_poses.append(pose_stamped_msg(result.T_odom_base, stamp_ns,
                                                 node_cfg.odom_frame))
         self.path.header.stamp = odom.header.stamp
@@ -446,16 +339,12 @@ class FilterOdomNode(Node):
 
     def _on_reset(self, request, response):
         """`~/reset`: start the odometry again from the identity, with an empty map."""
-        reset = getattr(self.pipeline, 'reset', None)
-        if callable(reset):
-            reset()
-        else:
-            self.pipeline = OdometryPipeline(self.config, record_trajectory=False)
+        self.pipeline.reset()
+        self.pipeline.finished_segments.clear()  # the trajectory starts again too
         self.path_poses.clear()
         self._path_dirty = True
         self.last_result = None
         self._weak = None
-        self._trajectory_stamps_ns, self._trajectory_xyzq = [], []
         self.last_stamp_ns = None
         self.last_received_stamp_ns = None
         self._stamp_steps_ns.clear()
@@ -466,12 +355,9 @@ class FilterOdomNode(Node):
         return response
 
     def trajectory(self) -> Trajectory:
-        """T_odom_base of every published scan since the start or the last reset."""
-        stamps = np.array(self._trajectory_stamps_ns, dtype=np.int64)
-        if not stamps.size:
-            return Trajectory(stamps, np.zeros((0, 4, 4)))
-        xyzq = np.array(self._trajectory_xyzq)
-        return Trajectory(stamps, poses_from_xyz_quat(xyzq[:, :3], xyzq[:, 3:]))
+        """T_odom_base of every published scan since the start, the last reset or a clock
+        reset (the run the map belongs to)."""
+        return self.pipeline.base_trajectory()
 
     def _on_save_map(self, request, response):
         """`~/save_map`: the map (binary PCD with frequencies) and the trajectory (TUM), in the

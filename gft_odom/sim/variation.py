@@ -49,7 +49,7 @@ VARIATION_RANGES: dict[str, tuple[float, float]] = {
     'mount_roll_rad': (-0.03, 0.03),
     'mount_pitch_rad': (-0.06, 0.06),
 }
-# The slowest a drive goes outside stops and pivots (the 0.3-2 m/s).
+# The slowest a drive goes outside stops and pivots (the design's 0.3-2 m/s).
 MIN_CRUISE_MPS = 0.3
 MAX_SPEED_MPS = 2.0
 

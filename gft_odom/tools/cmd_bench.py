@@ -84,7 +84,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--mask-provenance', default='',
                    help='one sentence for the page: how and on which seeds the mask was chosen')
     p.add_argument('--json', default='benchmarks/results/bench.json', help='JSON output')
-    p.add_argument('--markdown', default='docs/benchmarks_short_drives.md',
+    p.add_argument('--markdown', default='benchmarks/results/benchmarks_short_drives.md',
                    help='Markdown page output')
     p.add_argument('--figures-dir', help="PNG folder (default: the Markdown page's folder)")
     p.add_argument('--work-dir', help='keep the simulated bags here (default: a temporary '

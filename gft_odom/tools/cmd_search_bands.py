@@ -1,4 +1,4 @@
-"""`gft-odom search-bands`: offline band-mask search with held-out scoring (issue 6)."""
+"""`gft-odom search-bands`: offline band-mask search with held-out scoring."""
 
 from __future__ import annotations
 

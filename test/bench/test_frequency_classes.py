@@ -37,6 +37,16 @@ def test_balanced_accuracy_of_a_separating_threshold(bench):
     assert bench.best_threshold_balanced_accuracy(mixed, cls) == pytest.approx(0.5)
 
 
+def test_the_information_within_range_deciles_is_what_range_does_not_tell(bench):
+    """A band that is the range decile tells the class only through the range."""
+    rng = np.random.default_rng(1)
+    range_m = rng.uniform(1.0, 50.0, 20000)
+    cls = (range_m > 25.0).astype(int) * 2  # near: ground, far: canopy
+    by_range = np.digitize(range_m, [10.0, 25.0, 40.0]) + 1
+    assert bench.mutual_information_bits(by_range, cls) > 0.9
+    assert bench.mutual_information_within_range_bits(by_range, cls, range_m) < 0.05
+
+
 @pytest.mark.slow
 def test_quick_run_writes_every_measure(tmp_path):
     out = tmp_path / 'fc.json'
@@ -44,11 +54,9 @@ def test_quick_run_writes_every_measure(tmp_path):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     data = json.loads(out.read_text())
-    rows = {(r['method'], r['graph'], r['source']): r for r in data['test']}
-    default = rows[('ldos_mean', 'scan_line', 'scan')]
-    assert 0.0 <= default['largest_band_share'] <= 1.0
-    assert set(default['band_histogram_per_class']) == {'ground', 'trunk', 'canopy', 'other'}
-    assert ('ldos_mean', 'slice', 'local_map') in rows
-    planarity = rows[('planarity', 'map', 'map_planarity')]
-    assert 0.0 <= planarity['mutual_information_bits'] <= 2.0
-    assert planarity['no_spectrum_share'] < 0.5  # most points find the map within 0.3 m
+    rows = {r['frequency']: r for r in data['test']}
+    assert set(rows) == {label for label, _ in load_script(SCRIPT).FREQUENCIES}
+    for row in rows.values():
+        assert 0.0 <= row['largest_band_share'] <= 1.0
+        assert 0.0 <= row['mutual_information_within_range_bits'] <= 2.0
+        assert -1.0 <= row['correlation_with_log_range'] <= 1.0

@@ -10,15 +10,10 @@ import pytest
 
 from gft_odom.bench import drives as drives_module
 from gft_odom.bench.drives import (
-    CONFIRM_DRIVES,
-    EDGE_CONFIRM_DRIVES,
     EDGE_DRIVES,
-    EDGE_LATE_DRIVES,
-    EDGE_NEW_DRIVES,
-    EDGE_SCREEN_DRIVES,
-    EDGE_SLID_DRIVES,
-    HELD_OUT_DRIVES,
-    NEW_HELD_OUT_DRIVES,
+    EDGE_TUNED_SEEDS,
+    NEVER_USED_DRIVES,
+    RECORD_DRIVES,
     STRESS_DRIVES,
     TRAINING_DRIVES,
     Drive,
@@ -82,34 +77,23 @@ def test_drive_sets_share_no_seed_and_the_record_offers_each():
     from pathlib import Path
 
     from helpers import load_script
-    sets = (TRAINING_DRIVES, HELD_OUT_DRIVES, NEW_HELD_OUT_DRIVES, EDGE_DRIVES, CONFIRM_DRIVES,
-            EDGE_CONFIRM_DRIVES, EDGE_NEW_DRIVES, EDGE_SCREEN_DRIVES, EDGE_LATE_DRIVES,
-            EDGE_SLID_DRIVES, STRESS_DRIVES)
+    sets = (TRAINING_DRIVES, RECORD_DRIVES, NEVER_USED_DRIVES, EDGE_DRIVES, STRESS_DRIVES)
     seeds = [d.seed for drives in sets for d in drives]
+    assert len(seeds) == len(set(seeds))
+    assert len(RECORD_DRIVES) == 10 and len(NEVER_USED_DRIVES) == 4 and len(EDGE_DRIVES) == 20
+    routes = {'lawnmower', 'every_other_row', 'spiral', 'out_and_back'}
+    assert {d.route for d in RECORD_DRIVES} == {d.route for d in NEVER_USED_DRIVES} == routes
+    assert {d.route for d in EDGE_DRIVES} == {'edge_lawnmower'}
+    assert set(EDGE_TUNED_SEEDS) < {d.seed for d in EDGE_DRIVES}
+    assert all(d.distance_m == 280.0 for d in RECORD_DRIVES + NEVER_USED_DRIVES + EDGE_DRIVES)
     # The stress family: at least six drives and 1.5 km, every one drawn outside the ranges.
     assert len(STRESS_DRIVES) >= 6 and sum(d.distance_m for d in STRESS_DRIVES) >= 1500.0
     assert {d.family for d in STRESS_DRIVES} == {'stress'}
     assert {d.family for drives in sets[:-1] for d in drives} == {'varied'}
-    assert len(seeds) == len(set(seeds))
-    assert {d.seed for d in NEW_HELD_OUT_DRIVES} == {211, 212, 213, 214}
-    assert {d.route for d in NEW_HELD_OUT_DRIVES} == {'lawnmower', 'every_other_row', 'spiral',
-                                                      'out_and_back'}
-    assert {d.route for d in EDGE_DRIVES + EDGE_CONFIRM_DRIVES + EDGE_NEW_DRIVES
-            + EDGE_SCREEN_DRIVES + EDGE_LATE_DRIVES + EDGE_SLID_DRIVES} == {'edge_lawnmower'}
-    assert {d.route for d in CONFIRM_DRIVES} == {d.route for d in NEW_HELD_OUT_DRIVES}
-    assert all(d.distance_m == 280.0 for d in NEW_HELD_OUT_DRIVES + EDGE_DRIVES + CONFIRM_DRIVES
-               + EDGE_CONFIRM_DRIVES + EDGE_NEW_DRIVES + EDGE_SCREEN_DRIVES
-               + EDGE_LATE_DRIVES + EDGE_SLID_DRIVES)
     record = load_script(Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_record.py')
-    assert record.DRIVE_SETS == {'held-out': HELD_OUT_DRIVES, 'training': TRAINING_DRIVES,
-                                 'new-held-out': NEW_HELD_OUT_DRIVES, 'edge': EDGE_DRIVES,
-                                 'confirm': CONFIRM_DRIVES,
-                                 'edge-confirm': EDGE_CONFIRM_DRIVES,
-                                 'edge-new': EDGE_NEW_DRIVES,
-                                 'edge-screen': EDGE_SCREEN_DRIVES,
-                                 'edge-late': EDGE_LATE_DRIVES,
-                                 'edge-slid': EDGE_SLID_DRIVES,
-                                 'stress': STRESS_DRIVES}
+    assert record.DRIVE_SETS == {'record': RECORD_DRIVES, 'never-used': NEVER_USED_DRIVES,
+                                 'edge': EDGE_DRIVES, 'stress': STRESS_DRIVES,
+                                 'training': TRAINING_DRIVES}
 
 
 @pytest.mark.slow
@@ -200,24 +184,6 @@ def test_a_changed_default_is_measured_again_and_a_peer_is_not(tmp_path, measure
     assert sorted(calls) == ['kiss', 'ours', 'ours']
 
 
-def test_an_option_at_its_neutral_value_keeps_the_cached_results(tmp_path, measured_labels):
-    from gft_odom.bench import record as record_module
-    from gft_odom.config import with_values
-    calls = measured_labels
-    sequence = BenchSequence('spiral', 1, 2, tmp_path / 'bag', tmp_path / 'gt.csv')
-    (section, name), neutral = next(iter(record_module.KEY_NEUTRAL_VALUES.items()))
-    at_neutral = with_values(GftOdomConfig(), {f'{section}.{name}': neutral})
-    ours = Entry('ours', 'default+gft')
-    run_record([ours], [sequence], base=at_neutral, cache_dir=tmp_path / 'cache')
-    key = record_module._keyed_config(record_module.method_config(at_neutral, 'default+gft'))
-    assert name not in key[section]  # the key a result had before the option existed
-    run_record([ours], [sequence], base=at_neutral, cache_dir=tmp_path / 'cache')
-    assert calls == ['ours']  # read back
-    other = with_values(GftOdomConfig(), {f'{section}.{name}': 'background'})
-    run_record([ours], [sequence], base=other, cache_dir=tmp_path / 'cache')
-    assert calls == ['ours', 'ours']  # another value is another result
-
-
 def test_summary_shows_mean_and_end_point_error_and_fills_old_cached_pairs(tmp_path,
                                                                            measured_labels):
     from gft_odom.bench import record as record_module
@@ -238,32 +204,20 @@ def test_summary_shows_mean_and_end_point_error_and_fills_old_cached_pairs(tmp_p
     assert '| 0.500 | 1 | n/a | 0 | n/a | 1.000 |' in row
 
 
-def test_rows_named_after_an_old_default_keep_it_when_the_default_moves():
-    """A row labelled "session 16 default" or "view-gated" must not follow a new default."""
+def test_the_ablation_rows_are_the_frequencys_controls():
     from pathlib import Path
 
     from helpers import load_script
     record = load_script(Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_record.py')
     base = GftOdomConfig()
-    share = {e.label: e.config(base).registration.map_anchor_rough_any_side_share
-             for e in record.ENTRIES + record.ABLATION_ENTRIES}
-    assert base.registration.map_anchor_rough_any_side_share == 0.25
-    assert share['gft_odom'] == 0.25
-    view_gated = [label for label in share if label.startswith('view-gated rough anchors')]
-    assert view_gated and all(share[label] == 0.0 for label in view_gated)
-    any_side = [label for label in share if label.startswith('any-side share 0.25')]
-    assert len(any_side) == 3 and all(share[label] == 0.25 for label in any_side)
-    # Session 18: deskew is the default; every row measured before keeps none.
-    entries = record.ENTRIES + record.ABLATION_ENTRIES + record.STUDY_ENTRIES
-    deskew = {e.label: e.config(base).registration.deskew for e in entries
-              if e.method in ('default+gft', 'default')}
-    assert base.registration.deskew and deskew['gft_odom']
-    assert not any(deskew[label] for label in view_gated + any_side)
-    assert all(deskew[label] for label in deskew if label.startswith('deskew'))
-    window = {e.label: e.config(base).registration.deskew_velocity_window for e in entries}
-    assert base.registration.deskew_velocity_window == window['gft_odom'] == 2
-    assert window['deskew (session 17 default)'] == 5
-    assert not deskew['anchor smoothness 0.6, no any-side share']
+    configs = {e.label: e.config(base) for e in record.ABLATION_ENTRIES}
+    methods = {e.label: e.method for e in record.ABLATION_ENTRIES}
+    assert methods['no frequency (--no-filter)'] == 'default'
+    shuffled = [label for label in configs if label.startswith('shuffled')]
+    assert len(shuffled) == 3
+    assert len({configs[label].pipeline.shuffle_seed for label in shuffled}) == 3
+    assert all(configs[label].pipeline.shuffle_frequencies for label in shuffled)
+    assert {e.method for e in record.ENTRIES} >= {'default+gft', 'genz-icp', 'ct-icp'}
 
 
 def test_a_peer_that_crashes_is_a_result_and_ours_crashing_is_a_bug(tmp_path, monkeypatch):

@@ -93,22 +93,23 @@ def test_a_few_agreeing_refusals_among_many_good_matches_are_not_told():
 def test_a_drive_beyond_the_bound_does_not_pay_for_turned_guesses(monkeypatch):
     """Its refused matches fit well (no missed turn): re-acquisition skips the turned guesses,
     so the drive runs exactly the ICPs it runs without them."""
-    from gft_odom.config import GftOdomConfig, with_values
-    from gft_odom.core.icp_backend import IcpBackend
+    from gft_odom.config import GftOdomConfig
+    from gft_odom.core.registration import motion
+    from gft_odom.core.registration.matching import MapMatcher
     from gft_odom.pipeline import OdometryPipeline
     from gft_odom.sim.simulator import ScanSimulator, SimConfig
     sim = ScanSimulator.from_config(SimConfig(azimuth_step_deg=0.4, speed_mps=4.0), 'row', 16,
                                     5)
     scans = [sim.scan(i).scan for i in range(16)]
     calls = []
-    register = IcpBackend.register
-    monkeypatch.setattr(IcpBackend, 'register',
-                        lambda self, *a, **k: calls.append(1) or register(self, *a, **k))
+    match = MapMatcher.match
+    monkeypatch.setattr(MapMatcher, 'match',
+                        lambda self, *a, **k: calls.append(1) or match(self, *a, **k))
     counts = {}
     for guesses in (2, 0):
         calls.clear()
-        pipeline = OdometryPipeline(with_values(GftOdomConfig(),
-                                                {'registration.recovery_yaw_guesses': guesses}))
+        monkeypatch.setattr(motion, 'TURN_GUESSES', guesses)
+        pipeline = OdometryPipeline(GftOdomConfig())
         statuses = [pipeline.register_frame(scan).status for scan in scans]
         assert statuses.count(IMPLAUSIBLE_STATUS) >= 5
         counts[guesses] = len(calls)

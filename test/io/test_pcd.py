@@ -23,7 +23,7 @@ def _cloud(n: int = 500, seed: int = 0) -> np.ndarray:
     return frequency_cloud(rng.normal(scale=10.0, size=(n, 3)), rng.random(n) * 100.0, nu, band)
 
 
-def test_header_names_the_issue_layout():
+def test_header_names_the_map_layout():
     header = pcd_header(FREQUENCY_CLOUD_DTYPE, 3)
     assert 'FIELDS x y z intensity frequency band\n' in header
     assert 'SIZE 4 4 4 4 4 1\n' in header

@@ -16,7 +16,8 @@ import pytest
 
 from gft_odom.bench.faults import CASES, COPY_DELAY_NS, HOUR_NS, FaultyScan, run_case
 from gft_odom.config import GftOdomConfig, with_values
-from gft_odom.core.registration import TRUSTED_STATUSES, transform_magnitude
+from gft_odom.core.registration import TRUSTED_STATUSES
+from gft_odom.core.registration.motion import transform_magnitude
 from gft_odom.io.bags import ScanBagReader
 from gft_odom.io.tum import read_tum
 

@@ -65,9 +65,9 @@ def _growth_mb(n_points: int) -> float:
 
 @pytest.mark.slow
 def test_a_huge_scan_leaves_no_lasting_rss_growth():
-    # Trimmed at both ends, six runs each (session 33): normal +4.27 to +4.33 MB, huge +6.93
-    # to +7.70 MB. Before, the start was untrimmed and a run landed in one of two levels
-    # ~10 MB apart (normal -14 to -5 MB, huge -8 to -1 MB), which failed this test at times.
+    # Six runs each (0.1.0): normal +4.27 to +4.33 MB, huge +6.93 to +7.70 MB. Both ends
+    # are trimmed: untrimmed, a run lands in one of two levels ~10 MB apart (normal -14 to
+    # -5 MB, huge -8 to -1 MB), which would fail this test at times.
     normal = _growth_mb(29_000)
     # ~36 MB of float32 x, y, z, time; ~110 MB decoded. Holding on to that decoded scan (a
     # leak) measures +87 MB here.

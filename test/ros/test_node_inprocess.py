@@ -164,11 +164,12 @@ def test_missed_sweeps_are_counted_at_the_sensor_rate_from_the_stamps(make_node,
     assert node.counters['missed'] == 1
 
 
-def test_a_stamp_far_from_the_clock_points_at_the_clock(make_node):
-    node = make_node()
-    text = node._stale_text(106152016.0)
-    assert 'use_sim_time' in text and '/clock' in text
-    assert 'processing lags' in node._stale_text(0.8)
+def test_a_stamp_far_from_the_clock_points_at_the_clock():
+    from gft_odom.ros.diagnostics import stale_scan_text
+    text = stale_scan_text(106152016.0, use_sim_time=False, max_scan_age_s=0.5)
+    assert 'use_sim_time' in text and '--clock' in text
+    assert '/clock published' in stale_scan_text(106152016.0, True, 0.5)
+    assert 'processing lags' in stale_scan_text(0.8, False, 0.5)
 
 
 def test_check_params_files_says_what_is_wrong(tmp_path):
@@ -182,7 +183,7 @@ def test_check_params_files_says_what_is_wrong(tmp_path):
 
 
 def test_default_node_publishes_every_point_with_its_frequency_and_band(make_node, scans):
-    """Spectral engine v2: the package defaults compute the frequencies on every scan."""
+    """The package defaults compute the frequencies on every scan."""
     from gft_odom.core.spectral import SpectralFilter
     from gft_odom.io.pointcloud2 import decode_fields, decode_scan
     from gft_odom.pipeline import OdometryPipeline
@@ -281,7 +282,7 @@ def test_diagnostics_name_the_weakest_direction_in_base_axes(make_node, scans):
 def test_adaptive_reliability_follows_rosbag2():
     from rclpy.qos import ReliabilityPolicy
 
-    from gft_odom.ros.node import adaptive_reliability
+    from gft_odom.ros.input_qos import adaptive_reliability
     reliable, best_effort = ReliabilityPolicy.RELIABLE, ReliabilityPolicy.BEST_EFFORT
     assert adaptive_reliability([]) is None
     assert adaptive_reliability([reliable, reliable]) == reliable

@@ -1,4 +1,4 @@
-"""The orchard generator: determinism, the issue's ranges, and a sane layout."""
+"""The orchard generator: determinism, the design's ranges, and a sane layout."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def test_different_seeds_differ_in_layout_not_only_noise(orchard):
     assert len(counts) > 1 or np.ptp(spacings) > 0.1
 
 
-def test_ranges_from_the_issue(orchard):
+def test_ranges_from_the_design(orchard):
     cyl = orchard.cylinders
     trunk = cyl.surface == TRUNK
     assert 5.5 <= orchard.row_spacing_m <= 7.0

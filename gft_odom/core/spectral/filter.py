@@ -10,7 +10,7 @@ Graphs:
   weights of the 3-D distance, cut at tau. One block for the whole scan, no KD-tree.
 - `slice` (the paper's, and the fallback without `ring`): slice along z, project each slice to
   (x, y), thresholded Gaussian graph per slice (one block-diagonal matrix). Points of one slice
-  closer than `voxel_size_m` share one graph node.
+  closer than SLICE_NODE_M share one graph node.
 
 Decisions (measured in benchmarks/bench_frequency_classes.py and bench_spectral.py on
 simulated VLP-16 scans; tables in docs/method.md):
@@ -18,11 +18,11 @@ simulated VLP-16 scans; tables in docs/method.md):
   and it tells ground and trunks from canopy (the `signal` definition puts ~97 % of the points
   in band 1 and carries ~0.06 bits about the surface).
 - Points with no spectrum get band 0 and nu = NaN: isolated points (no neighbour within tau)
-  and, for the slice graph, points outside [z_min_m, z_max_m). `keep_isolated` and
-  `keep_out_of_range` decide whether a mask keeps them (both default True, so the all-pass
-  mask returns every point); points with a non-finite coordinate are never kept.
-- `signal` centres the position signal per connected component (default): the indicator of
-  each component is in the nullspace of L, so a per-component offset is pure nu = 0 energy;
+  and, for the slice graph, points outside [z_min_m, z_max_m). `keep_isolated` decides whether
+  a mask keeps the isolated ones (default True, so the all-pass mask returns every point); the
+  ones outside the z range are always kept; points with a non-finite coordinate never.
+- `signal` centres the position signal per connected component: the indicator of each
+  component is in the nullspace of L, so a per-component offset is pure nu = 0 energy;
   centring per slice leaves it in band 1, which then wins the argmax for every point.
 """
 
@@ -57,11 +57,13 @@ from gft_odom.errors import ConfigError, SpectralError
 log = logging.getLogger(__name__)
 
 GRAPHS = ('scan_line', 'slice')
-FREQUENCY_SOURCES = ('scan', 'local_map', 'map_planarity')
 SOLVERS = ('chebyshev', 'exact')
-CENTRINGS = ('component', 'slice')
-BAND_ASSIGNMENTS = ('argmax', 'relative')
-LAMBDA_MAX_METHODS = ('lanczos', 'arpack')
+# lambda_max of the slice graphs: batched Lanczos, 30 steps within 4e-4 (median) of ARPACK,
+# worst underestimate 3e-4 (20 steps: 3e-3, 6e-3). The scan-line graph's L is tridiagonal: its
+# lambda_max is computed exactly (bisection).
+LANCZOS_ITERATIONS = 30
+# Slice graph: points of one slice closer than this share one graph node (see `voxelise`).
+SLICE_NODE_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -71,19 +73,18 @@ class SpectralConfig:
     Geometry is in the sensor frame of a VLP-16 on a Jackal (sensor ~0.7 m above ground).
     """
 
-    # Layer thickness h: a VLP-16 ring spacing is 2 deg, ~0.35 m at 10 m; 0.25 m slices hold
-    # about one ring per range, so a slice is a clean 2-D section (trunk arcs, canopy outline).
-    slice_thickness_m: float = 0.25
-    # Ground is near z = -0.7 m; the range reaches below it (slopes, pitch) and above the
-    # canopy (citrus trees are ~3-4 m), so every real return gets a frequency, as in the paper.
-    z_min_m: float = -1.5
-    z_max_m: float = 4.0
-    # Points outside [z_min_m, z_max_m) have no spectrum (band 0); kept so that no mask silently
-    # deletes returns the filter never looked at (birds, overhanging branches, pits).
-    keep_out_of_range: bool = True
     # Which graph the frequencies are computed on: 'scan_line' (needs the `ring` field; clouds
     # without it use 'slice') or 'slice' (the paper's per-slice 2-D graph).
     graph: str = 'scan_line'
+    # A name from `frequency.REGISTRY`: 'ldos_mean' (the weighted degree over lambda_max) or
+    # 'signal' (the paper's band responses of the position signal).
+    method: str = 'ldos_mean'
+    n_bands: int = 10
+    # Default all-pass: a mask is chosen by the band search.
+    band_mask: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+    # Isolated points (no neighbour within tau) have no spectrum (band 0); kept so that the
+    # all-pass mask returns the input.
+    keep_isolated: bool = True
     # Edge threshold tau (both graphs) and Gaussian width sigma of the slice graph: 0.2 m joins
     # neighbouring points of one ring (3.5 cm apart at 10 m, 14 cm at 40 m) and adjacent
     # trunk/leaf returns, but not different trees or rows; sigma = tau / 2 makes the weight
@@ -93,138 +94,48 @@ class SpectralConfig:
     sigma_m: float = 0.1
     # Gaussian width of the scan-line graph (3-D distance, same tau): 0.05 m separates the
     # smooth runs of points on ground and trunks (neighbours a few cm apart) from the ragged
-    # canopy; on training seeds 0.05 m gave 0.53 bits about the surface with no band over 36 %
-    # of the points, 0.1 m 0.56 bits but up to 68 % in one band (docs/method.md).
+    # canopy.
     scan_line_sigma_m: float = 0.05
-    # How scan-line edges are weighed: 'distance' (Gaussian of the 3-D step, width
-    # scan_line_sigma_m: nu falls with range) or 'range_slope' (Gaussian of the range slope
-    # along the ring, width scan_line_slope_sigma, cut at an azimuth gap of
-    # scan_line_max_gap_rad, the step floored by scan_line_noise_m: range-invariant).
-    # graph.scan_line_graph has the definitions. On training seed 111 (lawnmower, varied),
-    # 'range_slope' with sigma 2, floor 5 cm carried 0.71-0.72 bits about the surface class
-    # (0.55-0.69 within range deciles) against 0.60-0.62 (0.49-0.62) for 'distance'.
-    scan_line_weight: str = 'distance'
-    scan_line_slope_sigma: float = 2.0
-    scan_line_max_gap_rad: float = 0.02
-    scan_line_noise_m: float = 0.05
-    # A graph low-pass filter of every point's range before registration (lowpass.py):
-    # r' = (I + alpha L)^-1 r on the scan-line graph of Gaussian width range_lowpass_sigma_m
-    # (cut at tau_m). 0: off. Needs the `ring` field. Session 44, training drives: alpha 2-30,
-    # width 0.05-1 m, -1.4 to +7.4 % against the default, inside a screen's noise floor: off.
-    range_lowpass_alpha: float = 0.0
-    range_lowpass_sigma_m: float = 0.05
-    n_bands: int = 10
-    # Default all-pass: the tuned mask is chosen later by the band search.
-    band_mask: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
-    # A name from `frequency.REGISTRY`: ldos_mean, ldos_spread, kpm, signal, dominant.
-    method: str = 'ldos_mean'
+    # How scan-line edges are weighed (graph.SCAN_LINE_WEIGHTS): 'range_slope' (Gaussian of the
+    # range slope along the ring: range-invariant; tells the surface best on held-out labelled
+    # scans, docs/method.md) or 'distance' (Gaussian of the 3-D step: nu falls with range).
+    scan_line_weight: str = 'range_slope'
+    # The paper's slices: thickness h (a VLP-16 ring spacing is 2 deg, ~0.35 m at 10 m; 0.25 m
+    # slices hold about one ring per range) and the z range sliced (ground near z = -0.7 m,
+    # citrus trees 3-4 m tall). Points outside it have no spectrum (band 0) and are kept.
+    slice_thickness_m: float = 0.25
+    z_min_m: float = -1.5
+    z_max_m: float = 4.0
+    # `signal`: 'chebyshev' (Jackson-damped band filters of order chebyshev_order) or 'exact'
+    # (eigh for blocks of up to 1000 nodes, Chebyshev above).
     solver: str = 'chebyshev'
-    # Order K of the Jackson-Chebyshev expansion: same band as the exact path for 98.1 % of the
-    # points at K = 20 (95.7 % at 10, 98.7 % at 30, 99.0 % at 60) in bench_spectral; the cost
-    # of the recursion is linear in K.
+    # The same band as the exact path for 98.1 % of the points at 20 (95.7 % at 10, 98.7 % at
+    # 30, 99.0 % at 60) in bench_spectral; the cost is linear in the order.
     chebyshev_order: int = 20
-    # lambda_max of the slice graphs: batched Lanczos, 30 steps within 4e-4 (median) of ARPACK,
-    # worst underestimate 3e-4 (20 steps: 3e-3, 6e-3). The scan-line graph's L is tridiagonal:
-    # its lambda_max is computed exactly (bisection) and these two are not used.
-    lambda_max_method: str = 'lanczos'
-    lanczos_iterations: int = 30
-    # Hutchinson probes of the `kpm` definition (its Chebyshev order is `chebyshev_order`).
-    kpm_probes: int = 8
-    # Isolated points (no neighbour within tau) are band 0; kept so all-pass returns the input.
-    keep_isolated: bool = True
-    # The exact path (dense eigh, O(n^3) time, O(n^2) memory) is used for slices up to this
-    # many graph nodes, Chebyshev above: 1000 nodes is ~0.3 s per slice; a whole VLP-16 scan
-    # at 2000 took ~45 s on the 2-core test machine.
-    exact_max_slice_points: int = 1000
-    centring: str = 'component'
-    # How a `signal` point gets its band: 'argmax' of the band responses r_mb (DESIGN 2), or
-    # 'relative': argmax of r_mb / (mean of r_b over the slice), i.e. the band in which the
-    # point stands out from its slice. Position signals are smooth, so with 'argmax' ~95 % of a
-    # VLP-16 scan lands in band 1 (bench_spectral); 'relative' spreads the points over the bands.
-    band_assignment: str = 'argmax'
-    # Points of one slice closer than this share one graph node (0.0: off); see `voxelise`.
-    voxel_size_m: float = 0.05
-    # Where the frequencies come from (`sources.py`): 'scan' (each scan's own graph) or
-    # 'local_map' (the merged cloud of the last keyframes, as the paper computed them on the
-    # merged map, passed to the scan by nearest neighbour). 'scan' carries far more information
-    # about the surface (bench_frequency_classes: 0.5 vs 0.06 bits).
-    # 'map_planarity' is not a frequency: the GenZ-ICP-style planarity of each point's
-    # neighbourhood in that local map, on nu's scale (issue 20's ablation: what the frequency
-    # earns over a plain geometric feature in the same uses).
-    frequency_source: str = 'scan'
-    # The local map of `local_map` and `map_planarity`: keyframes kept, the motion that makes a
-    # new keyframe, the map's voxel size, and how far a scan point may be from the map to take
-    # its value.
-    local_map_keyframes: int = 5
-    local_map_keyframe_distance_m: float = 0.5
-    local_map_voxel_m: float = 0.1
-    local_map_max_distance_m: float = 0.3
-    # 'map_planarity': the map neighbours whose covariance gives a point's surface variation
-    # v = l_min / (l_1 + l_2 + l_3) (0 on a plane, 1/3 in a blob), and the v at which a point
-    # counts as fully rough; nu = 0.5 (1 - v / planarity_rough_variation), clipped to [0, 0.5]
-    # (0.5: what the scan-line frequency gives a smooth surface, ~0 canopy).
-    planarity_neighbours: int = 15
-    planarity_rough_variation: float = 0.1
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
-        def positive(name: str) -> None:
+        for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m'):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ConfigError(f'spectral.{name} must be a finite number > 0, got {value!r}')
-
-        if not (isinstance(self.range_lowpass_alpha, (int, float))
-                and np.isfinite(self.range_lowpass_alpha) and self.range_lowpass_alpha >= 0):
-            raise ConfigError(f'spectral.range_lowpass_alpha must be a finite number >= 0, '
-                              f'got {self.range_lowpass_alpha!r}')
-        for name in ('slice_thickness_m', 'tau_m', 'sigma_m', 'scan_line_sigma_m',
-                     'range_lowpass_sigma_m',
-                     'scan_line_slope_sigma', 'scan_line_max_gap_rad', 'scan_line_noise_m',
-                     'local_map_keyframe_distance_m',
-                     'local_map_voxel_m', 'local_map_max_distance_m'):
-            positive(name)
         if not (np.isfinite(self.z_min_m) and np.isfinite(self.z_max_m)
                 and self.z_max_m > self.z_min_m):
             raise ConfigError(f'spectral.z_max_m ({self.z_max_m}) must be > z_min_m '
                               f'({self.z_min_m}), both finite')
+        if not SLICE_NODE_M < self.tau_m:
+            raise ConfigError(f"spectral.tau_m must exceed the slice graph's node size "
+                              f'({SLICE_NODE_M} m), got {self.tau_m}')
         validate_n_bands(self.n_bands)
         BandMask.parse(tuple(self.band_mask), self.n_bands)
         for name, allowed in (('method', tuple(sorted(REGISTRY))), ('solver', SOLVERS),
-                              ('graph', GRAPHS), ('frequency_source', FREQUENCY_SOURCES),
-                              ('scan_line_weight', SCAN_LINE_WEIGHTS),
-                              ('band_assignment', BAND_ASSIGNMENTS),
-                              ('centring', CENTRINGS),
-                              ('lambda_max_method', LAMBDA_MAX_METHODS)):
+                              ('graph', GRAPHS), ('scan_line_weight', SCAN_LINE_WEIGHTS)):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f'spectral.{name} must be one of {list(allowed)}, '
                                   f'got {getattr(self, name)!r}')
-        if REGISTRY[self.method].needs_eigenvectors and self.solver != 'exact':
-            raise ConfigError(f'spectral.method {self.method!r} needs every eigenvector: set '
-                              "solver 'exact' (Chebyshev only serves method 'signal')")
         if not 1 <= self.chebyshev_order <= 500:
             raise ConfigError(f'spectral.chebyshev_order must be in 1..500, '
                               f'got {self.chebyshev_order}')
-        if not 2 <= self.lanczos_iterations <= 500:
-            raise ConfigError(f'spectral.lanczos_iterations must be in 2..500, '
-                              f'got {self.lanczos_iterations}')
-        if not (np.isfinite(self.voxel_size_m) and 0.0 <= self.voxel_size_m < self.tau_m):
-            raise ConfigError(f'spectral.voxel_size_m must be in [0, tau_m = {self.tau_m}), '
-                              f'got {self.voxel_size_m}')
-        if not 1 <= self.local_map_keyframes <= 100:
-            raise ConfigError(f'spectral.local_map_keyframes must be in 1..100, '
-                              f'got {self.local_map_keyframes}')
-        if not (isinstance(self.planarity_neighbours, int)
-                and 3 <= self.planarity_neighbours <= 100):
-            raise ConfigError(f'spectral.planarity_neighbours must be an integer in 3..100, '
-                              f'got {self.planarity_neighbours!r}')
-        if not 0.0 < self.planarity_rough_variation <= 1.0 / 3.0:  # 1/3: an isotropic blob
-            raise ConfigError(f'spectral.planarity_rough_variation must be in (0, 1/3], '
-                              f'got {self.planarity_rough_variation!r}')
-        if not 1 <= self.kpm_probes <= 1000:
-            raise ConfigError(f'spectral.kpm_probes must be in 1..1000, got {self.kpm_probes}')
-        if self.exact_max_slice_points < 1:
-            raise ConfigError(f'spectral.exact_max_slice_points must be >= 1, '
-                              f'got {self.exact_max_slice_points}')
 
 
 @dataclass(frozen=True)
@@ -262,17 +173,17 @@ class FilterResult:
     timings_s: dict
 
 
-def keep_mask(freqs: PointFrequencies, band_mask: BandMask, keep_isolated: bool = True,
-              keep_out_of_range: bool = True) -> np.ndarray:
-    """(N,) bool: points whose band is in the mask, plus band-0 points the flags keep."""
+def keep_mask(freqs: PointFrequencies, band_mask: BandMask, keep_isolated: bool = True
+              ) -> np.ndarray:
+    """(N,) bool: points whose band is in the mask, the points outside the sliced z range,
+    and (`keep_isolated`) the isolated ones."""
     if band_mask.n_bands != freqs.n_bands:
         raise ConfigError(f'band mask {band_mask} has {band_mask.n_bands} bands but the '
                           f'frequencies were computed for n_bands = {freqs.n_bands}')
     keep = band_mask.lookup()[freqs.band]
     if keep_isolated:
         keep |= freqs.isolated
-    if keep_out_of_range:
-        keep |= ~freqs.in_range
+    keep |= ~freqs.in_range
     return keep & freqs.finite
 
 
@@ -303,16 +214,11 @@ class SpectralFilter:
         """Whether masks keep isolated points (band 0)."""
         return self.config.keep_isolated
 
-    @property
-    def keep_out_of_range(self) -> bool:
-        """Whether masks keep points outside the slicing z range (band 0)."""
-        return self.config.keep_out_of_range
-
     def keeps_every_finite_point(self, band_mask: BandMask | None = None) -> bool:
         """Whether `band_mask` (default: the filter's) keeps every point with finite
         coordinates whatever its frequency: all bands, and band 0 kept for both reasons."""
         mask = self.band_mask if band_mask is None else band_mask
-        return mask.is_all_pass and self.keep_isolated and self.keep_out_of_range
+        return mask.is_all_pass and self.keep_isolated
 
     # -- public API ------------------------------------------------------------------------
 
@@ -348,7 +254,7 @@ class SpectralFilter:
                   ) -> np.ndarray:
         """Re-filter cached frequencies with any mask (default: the filter's own)."""
         mask = self.band_mask if band_mask is None else band_mask
-        return keep_mask(freqs, mask, self.keep_isolated, self.keep_out_of_range)
+        return keep_mask(freqs, mask, self.keep_isolated)
 
     def apply(self, points_xyz: np.ndarray, band_mask: BandMask | None = None,
               ring: np.ndarray | None = None) -> FilterResult:
@@ -386,10 +292,7 @@ class SpectralFilter:
             ring_f = np.asarray(ring) if index is None else np.asarray(ring)[index]
             L, order = scan_line_graph(coords, ring_f, self.config.tau_m,
                                        self.config.scan_line_sigma_m,
-                                       self.config.scan_line_weight,
-                                       self.config.scan_line_slope_sigma,
-                                       self.config.scan_line_max_gap_rad,
-                                       self.config.scan_line_noise_m)
+                                       self.config.scan_line_weight)
             if index is not None:
                 order = index[order]
             sl = Slices(order=order, starts=np.array([0, order.size], dtype=np.int64),
@@ -405,7 +308,7 @@ class SpectralFilter:
             sl = slice_points(z, self.config.slice_thickness_m, self.config.z_min_m,
                               self.config.z_max_m)
             coords, node_block, starts, node_of_point = voxelise(
-                points[sl.order, :2], sl.slice_of_point, sl.n_slices, self.config.voxel_size_m)
+                points[sl.order, :2], sl.slice_of_point, sl.n_slices, SLICE_NODE_M)
             timings['slice'] = time.perf_counter() - t
             t = time.perf_counter()
             W = gaussian_graph(coords, node_block, self.config.tau_m, self.config.sigma_m)
@@ -421,8 +324,7 @@ class SpectralFilter:
         if isinstance(L, ScanLineLaplacian):  # tridiagonal: exact, cheaper than Lanczos
             lmax = np.array([L.lambda_max()])
         else:
-            lmax = lambda_max_per_slice(L, starts, self.config.lambda_max_method,
-                                        self.config.lanczos_iterations)
+            lmax = lambda_max_per_slice(L, starts, 'lanczos', LANCZOS_ITERATIONS)
         timings['lambda_max'] = time.perf_counter() - t
         return SpectralGraph(n_points=points.shape[0], sl=sl, node_of_point=node_of_point,
                              starts=starts, node_block=node_block, L=L,
@@ -433,10 +335,10 @@ class SpectralFilter:
 
     def _centred_signal(self, W: sp.csr_matrix, coords: np.ndarray, node_block: np.ndarray
                         ) -> np.ndarray:
-        """Position signal X (n, c), minus its mean per component (or per block)."""
+        """Position signal X (n, c), minus its mean per connected component."""
         if coords.shape[0] == 0:
             return np.zeros((0, coords.shape[1]))
-        labels = components(W)[1] if self.config.centring == 'component' else node_block
+        labels = components(W)[1]
         count = np.bincount(labels).astype(np.float64)
         mean = np.column_stack([np.bincount(labels, weights=coords[:, c]) / count
                                 for c in range(coords.shape[1])])

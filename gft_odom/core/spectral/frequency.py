@@ -11,17 +11,10 @@ The definitions (DESIGN section 2; measured in benchmarks/bench_frequency_classe
   rho_m(lambda) = sum_l v_l(m)^2 delta(lambda - lambda_l), normalised:
   nu_m = sum_l nu_l v_l(m)^2 = L_mm / lambda_max, the weighted degree over lambda_max. Exact,
   1-hop local, no eigen-decomposition.
-- `ldos_spread`: twice the standard deviation of the same density, from its exact second
-  moment [L^2]_mm = d_m^2 + sum_n W_mn^2 (2-hop local); in [0, 1] since a density on [0, 1]
-  has a standard deviation of at most 1/2.
-- `kpm`: the LDOS band energies [h_b(L)]_mm by the kernel polynomial method (Jackson-damped
-  Chebyshev moments, Hutchinson probes); band = the band holding most of the density, nu = its
-  density-weighted mean band centre. For comparison with the exact moments.
-- `signal`: band responses r_mb = |(h_b(L) X)_m|^2 of the centred position signal X (Chebyshev
-  or, for small blocks, exact); band = argmax (or `relative`: argmax of r_mb over the block's
-  mean r_b). Degenerate on orchard scans: a position signal is smooth, so most points land in
-  band 1.
-- `dominant`: nu of the eigenvector with the largest |v_l(m)| (exact eigh, small blocks only).
+- `signal` (the paper's mode): band responses r_mb = |(h_b(L) X)_m|^2 of the centred position
+  signal X (Chebyshev or, for blocks of at most EXACT_MAX_BLOCK_NODES with solver 'exact', by
+  eigh); band = argmax. Degenerate on orchard scans: a position signal is smooth, so most
+  points land in band 1.
 """
 
 from __future__ import annotations
@@ -33,17 +26,8 @@ from typing import ClassVar
 import numpy as np
 
 from gft_odom.core.spectral.bands import band_of_nu
-from gft_odom.core.spectral.chebyshev import (
-    band_coefficients,
-    band_responses_from_terms,
-    chebyshev_terms,
-)
-from gft_odom.core.spectral.gft import (
-    band_responses_exact,
-    dominant_frequency,
-    fourier_basis,
-    signal_frequency,
-)
+from gft_odom.core.spectral.chebyshev import band_responses_from_terms, chebyshev_terms
+from gft_odom.core.spectral.gft import band_responses_exact, fourier_basis, signal_frequency
 from gft_odom.core.spectral.graph import GraphLaplacian
 from gft_odom.core.spectral.slicing import Slices
 from gft_odom.errors import SpectralError
@@ -97,11 +81,9 @@ class FrequencyDefinition:
     name: ClassVar[str] = ''
     # True when the definition needs the centred position signal X (built with the graph).
     needs_position_signal: ClassVar[bool] = False
-    # True when it needs every eigenvector (dense eigh): only with solver 'exact'.
-    needs_eigenvectors: ClassVar[bool] = False
 
     def __init__(self, config) -> None:
-        """`config`: the `SpectralConfig` (orders, probes, solver) the definition reads."""
+        """`config`: the `SpectralConfig` (order, solver) the definition reads."""
         self.config = config
 
     def prepare(self, graph: SpectralGraph) -> None:
@@ -139,19 +121,6 @@ def _ldos_mean(L: GraphLaplacian, lmax_per_node: np.ndarray) -> np.ndarray:
                     degree / np.where(lmax_per_node > 0.0, lmax_per_node, 1.0), 0.0)
 
 
-def ldos_moments(L: GraphLaplacian, lmax_per_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """First and second moments of every vertex's LDOS on nu = lambda / lambda_max, exactly.
-
-    sum_l nu_l v_l(m)^2 = L_mm / lambda_max and sum_l nu_l^2 v_l(m)^2 = [L^2]_mm / lambda_max^2
-    with [L^2]_mm = d_m^2 + sum_n W_mn^2 (W has a zero diagonal).
-    """
-    mean = _ldos_mean(L, lmax_per_node)
-    w2 = np.asarray(L.W.multiply(L.W).sum(axis=1)).ravel()
-    safe = np.where(lmax_per_node > 0.0, lmax_per_node, 1.0)
-    second = np.where(lmax_per_node > 0.0, (L.degree * L.degree + w2) / (safe * safe), 0.0)
-    return mean, second
-
-
 @register
 class LdosMean(FrequencyDefinition):
     """nu = mean of the vertex's local spectral density = weighted degree / lambda_max."""
@@ -164,54 +133,17 @@ class LdosMean(FrequencyDefinition):
         return NodeFrequencies(nu, band_of_nu(nu, n_bands))
 
 
-@register
-class LdosSpread(FrequencyDefinition):
-    """nu = 2 x standard deviation of the vertex's local spectral density (exact, 2-hop)."""
-
-    name = 'ldos_spread'
-
-    def prepare(self, graph: SpectralGraph) -> None:
-        """The exact spread does not depend on the band count."""
-        mean, second = ldos_moments(graph.L, graph.node_lmax())
-        graph.prepared['nu'] = np.clip(2.0 * np.sqrt(np.maximum(second - mean * mean, 0.0)),
-                                       0.0, 1.0)
-
-    def assign(self, graph: SpectralGraph, n_bands: int) -> NodeFrequencies:
-        """Band of the spread."""
-        nu = graph.prepared['nu']
-        return NodeFrequencies(nu, band_of_nu(nu, n_bands))
-
-
-@register
-class KpmLdos(FrequencyDefinition):
-    """LDOS band energies [h_b(L)]_mm by Chebyshev moments and Hutchinson probes."""
-
-    name = 'kpm'
-
-    def prepare(self, graph: SpectralGraph) -> None:
-        """mu_k(m) = mean over probes z of z_m [T_k(M) z]_m, k = 0..K (K = chebyshev_order)."""
-        n = graph.n_nodes
-        probes = np.random.default_rng(0).choice(
-            np.array([-1.0, 1.0], dtype=np.float32), size=(n, self.config.kpm_probes))
-        lmax = graph.node_lmax()
-        scale = np.where(lmax > 0.0, 2.0 / np.where(lmax > 0.0, lmax, 1.0), 0.0)
-        terms = chebyshev_terms(graph.L, scale, probes, self.config.chebyshev_order)
-        graph.prepared['moments'] = np.einsum('knp,np->kn', terms, probes) / probes.shape[1]
-
-    def assign(self, graph: SpectralGraph, n_bands: int) -> NodeFrequencies:
-        """Band holding most of the estimated density; nu its density-weighted band centre."""
-        moments = graph.prepared['moments']
-        coeffs = band_coefficients(n_bands, moments.shape[0] - 1)
-        energy = np.maximum(coeffs @ moments, 0.0).T  # (n, B); estimates can dip below 0
-        nu, band = signal_frequency(energy)
-        return NodeFrequencies(nu, band, energy)
+# The exact path (dense eigh, O(n^3) time, O(n^2) memory) takes blocks up to this many graph
+# nodes, Chebyshev the larger: 1000 nodes is ~0.3 s a slice; a whole VLP-16 scan at 2000 took
+# ~45 s on the 2-core test machine.
+EXACT_MAX_BLOCK_NODES = 1000
 
 
 def _exact_blocks(graph: SpectralGraph, config) -> tuple[list[int], np.ndarray]:
     """(blocks the exact path handles: solver 'exact' and small enough, the other non-empty
     blocks as a mask)."""
     sizes = np.diff(graph.starts)
-    exact = ([s for s in range(len(sizes)) if sizes[s] <= config.exact_max_slice_points]
+    exact = ([s for s in range(len(sizes)) if sizes[s] <= EXACT_MAX_BLOCK_NODES]
              if config.solver == 'exact' else [])
     cheb = np.ones(len(sizes), dtype=bool)
     cheb[exact] = False
@@ -233,9 +165,8 @@ class SignalFrequency(FrequencyDefinition):
         if not np.any(cheb):
             return
         if self.config.solver == 'exact':
-            log.debug('%d blocks exceed exact_max_slice_points = %d; their points use the '
-                      'Chebyshev `signal` frequency', int(cheb.sum()),
-                      self.config.exact_max_slice_points)
+            log.debug('%d blocks exceed %d nodes; their points use the Chebyshev `signal` '
+                      'frequency', int(cheb.sum()), EXACT_MAX_BLOCK_NODES)
         rows = np.flatnonzero(cheb[graph.node_block])
         lmax = graph.node_lmax()
         scale = np.where(lmax > 0.0, 2.0 / np.where(lmax > 0.0, lmax, 1.0), 0.0)
@@ -259,54 +190,7 @@ class SignalFrequency(FrequencyDefinition):
         return resp
 
     def assign(self, graph: SpectralGraph, n_bands: int) -> NodeFrequencies:
-        """argmax (or block-relative argmax) of the responses; nu their weighted centre."""
+        """argmax of the responses; nu their weighted centre."""
         resp = self.responses(graph, n_bands)
-        weights = resp
-        if self.config.band_assignment == 'relative':
-            weights = resp / block_band_means(resp, graph)
-        nu, band = signal_frequency(weights)
+        nu, band = signal_frequency(resp)
         return NodeFrequencies(nu, band, resp)
-
-
-def block_band_means(resp: np.ndarray, graph: SpectralGraph) -> np.ndarray:
-    """(n, B) mean response of each band over the non-isolated nodes of each node's block;
-    bands with no energy in a block get 1 (their zero responses stay zero)."""
-    if resp.shape[0] == 0:
-        return np.ones_like(resp)
-    sizes = np.diff(graph.starts)
-    nonempty = sizes > 0
-    counts = np.add.reduceat((~graph.isolated_nodes).astype(np.float64),
-                             graph.starts[:-1][nonempty])
-    sums = np.add.reduceat(resp, graph.starts[:-1][nonempty], axis=0)
-    means = sums / np.maximum(counts, 1.0)[:, None]
-    means = np.where(means > 0.0, means, 1.0)
-    return np.repeat(means, sizes[nonempty], axis=0)
-
-
-@register
-class DominantFrequency(FrequencyDefinition):
-    """nu of the eigenvector with the largest |v_l(m)| (exact; larger blocks use `signal`)."""
-
-    name = 'dominant'
-    needs_position_signal = True  # the blocks too large for eigh fall back to `signal`
-    needs_eigenvectors = True
-
-    def __init__(self, config) -> None:
-        """Keeps a `signal` definition for the blocks too large for the exact path."""
-        super().__init__(config)
-        self._signal = SignalFrequency(config)
-
-    def prepare(self, graph: SpectralGraph) -> None:
-        """The `signal` terms for the large blocks."""
-        self._signal.prepare(graph)
-
-    def assign(self, graph: SpectralGraph, n_bands: int) -> NodeFrequencies:
-        """Exact blocks by their dominant eigenvector, the others by `signal`."""
-        large = self._signal.assign(graph, n_bands)
-        nu, band = large.nu.copy(), large.band.copy()
-        for s in graph.prepared['exact_blocks']:
-            lo, hi = int(graph.starts[s]), int(graph.starts[s + 1])
-            lam, U = fourier_basis(graph.L.block(lo, hi))
-            nu[lo:hi] = dominant_frequency(lam, U, graph.lmax[s])
-            band[lo:hi] = band_of_nu(nu[lo:hi], n_bands)
-        return NodeFrequencies(nu, band)

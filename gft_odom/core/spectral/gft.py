@@ -58,13 +58,6 @@ def band_responses_exact(lam: np.ndarray, U: np.ndarray, X: np.ndarray, lambda_m
     return r
 
 
-def dominant_frequency(lam: np.ndarray, U: np.ndarray, lambda_max: float) -> np.ndarray:
-    """`dominant` frequency: nu of the eigenvector with the largest |v_l(m)| at each point m."""
-    if U.shape[0] == 0:
-        return np.zeros(0)
-    return normalised_eigenvalues(lam, lambda_max)[np.argmax(np.abs(U), axis=1)]
-
-
 def signal_frequency(responses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`signal` frequency from band responses (n, B): (nu, band).
 

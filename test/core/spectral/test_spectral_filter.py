@@ -56,17 +56,12 @@ def test_default_config_is_valid_and_ros_friendly():
     ('method', 'loudest', 'method'),
     ('solver', 'magic', 'solver'),
     ('chebyshev_order', 0, 'chebyshev_order'),
-    ('voxel_size_m', 0.5, 'voxel_size_m'),
-    ('band_assignment', 'max', 'band_assignment'),
+    ('tau_m', 0.04, "slice graph's node size"),
+    ('scan_line_weight', 'loudness', 'scan_line_weight'),
 ])
 def test_invalid_config_raises_config_error(field, value, match):
     with pytest.raises(ConfigError, match=match):
         dataclasses.replace(SpectralConfig(), **{field: value}).validate()
-
-
-def test_dominant_needs_the_exact_solver():
-    with pytest.raises(ConfigError, match='exact'):
-        SpectralConfig(method='dominant').validate()
 
 
 def test_all_pass_keeps_every_point_and_bands_partition(orchard_points):
@@ -89,31 +84,29 @@ def test_all_pass_keeps_every_point_and_bands_partition(orchard_points):
 
 
 def test_cached_frequencies_refilter_with_any_mask(orchard_points):
-    filt = small_filter(keep_isolated=False, keep_out_of_range=False,
-                        band_assignment='relative')
+    filt = small_filter(keep_isolated=False)
     freqs = filt.frequencies(orchard_points)
     low = filt.keep_mask(freqs, BandMask.parse('1100000000'))
     high = filt.keep_mask(freqs, BandMask.parse('0000000011'))
     assert not np.any(low & high)
-    np.testing.assert_array_equal(low, np.isin(freqs.band, [1, 2]))
-    both = keep_mask(freqs, BandMask.parse('1100000011'), False, False)
+    np.testing.assert_array_equal(low, np.isin(freqs.band, [1, 2]) | ~freqs.in_range)
+    both = keep_mask(freqs, BandMask.parse('1100000011'), False)
     np.testing.assert_array_equal(both, low | high)
     assert 0 < both.sum() < len(orchard_points)
     with pytest.raises(ConfigError, match='n_bands'):
         filt.keep_mask(freqs, BandMask.parse('11111'))
 
 
-def test_isolated_and_out_of_range_flags(orchard_points):
+def test_isolated_points_are_kept_on_request_and_out_of_range_ones_always(orchard_points):
     pts = np.vstack([orchard_points, [[50.0, 50.0, 0.0], [0.0, 0.0, 9.0], [np.nan, 0.0, 0.0]]])
     mask = BandMask.parse([1], 10)
     for keep_iso in (True, False):
-        for keep_out in (True, False):
-            filt = small_filter(keep_isolated=keep_iso, keep_out_of_range=keep_out)
-            freqs = filt.frequencies(pts)
-            keep = filt.keep_mask(freqs, mask)
-            assert freqs.isolated[-3] and not freqs.in_range[-2] and not freqs.in_range[-1]
-            assert keep[-3] == keep_iso and keep[-2] == keep_out
-            assert not keep[-1]  # non-finite points are never kept
+        filt = small_filter(keep_isolated=keep_iso)
+        freqs = filt.frequencies(pts)
+        keep = filt.keep_mask(freqs, mask)
+        assert freqs.isolated[-3] and not freqs.in_range[-2] and not freqs.in_range[-1]
+        assert keep[-3] == keep_iso and keep[-2]  # never looked at: never dropped
+        assert not keep[-1]  # non-finite points are never kept
 
 
 def test_fast_path_agrees_with_exact_path(orchard_points):
@@ -123,14 +116,6 @@ def test_fast_path_agrees_with_exact_path(orchard_points):
     np.testing.assert_array_equal(exact.band > 0, has)
     assert np.mean(fast.band[has] == exact.band[has]) > 0.9
     assert np.median(np.abs(fast.nu[has] - exact.nu[has])) < 0.02
-
-
-def test_dominant_frequency_through_the_filter(orchard_points):
-    freqs = small_filter(method='dominant', solver='exact').frequencies(orchard_points)
-    has = freqs.band > 0
-    assert freqs.response is None
-    assert np.all((freqs.nu[has] >= 0.0) & (freqs.nu[has] <= 1.0))
-    assert len(np.unique(freqs.band[has])) > 2
 
 
 def test_responses_on_request_match_the_bands(orchard_points):
@@ -152,14 +137,6 @@ def test_frequencies_multi_matches_single_calls(orchard_points):
         np.testing.assert_allclose(multi[n].nu, single.nu, equal_nan=True)
 
 
-def test_voxel_merging_barely_changes_the_result(orchard_points):
-    plain = small_filter(voxel_size_m=0.0).frequencies(orchard_points)
-    merged = small_filter(voxel_size_m=0.02).frequencies(orchard_points)
-    assert np.mean((plain.band > 0) == (merged.band > 0)) > 0.98
-    both = (plain.band > 0) & (merged.band > 0)
-    assert np.mean(plain.band[both] == merged.band[both]) > 0.85
-
-
 def test_degenerate_inputs_do_not_crash():
     filt = small_filter()
     empty = filt.apply(np.zeros((0, 3)))
@@ -168,10 +145,9 @@ def test_degenerate_inputs_do_not_crash():
     assert one.band[0] == 0 and one.isolated[0]
     far = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]])
     assert np.all(filt.frequencies(far).band == 0)
-    for voxel_size_m in (0.0, 0.05):  # coincident points: no signal, perfectly smooth
-        freqs = small_filter(voxel_size_m=voxel_size_m).frequencies(np.zeros((5, 3)))
-        np.testing.assert_array_equal(freqs.band, 1)
-        np.testing.assert_allclose(freqs.nu, 0.0)
+    freqs = filt.frequencies(np.zeros((5, 3)))  # coincident points: perfectly smooth
+    np.testing.assert_array_equal(freqs.band, 1)
+    np.testing.assert_allclose(freqs.nu, 0.0)
     pair = filt.frequencies(np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]))
     assert np.all(pair.band == 10)  # two joined points: the only non-zero mode is the top one
     with pytest.raises(SpectralError, match='shape'):

@@ -8,7 +8,6 @@ from hypothesis import strategies as st
 
 from gft_odom.core.spectral.gft import (
     band_responses_exact,
-    dominant_frequency,
     fourier_basis,
     gft,
     igft,
@@ -100,17 +99,6 @@ def test_frequencies_do_not_change_when_eigenvector_signs_flip():
     assert not np.allclose(flipped, U)
     np.testing.assert_allclose(band_responses_exact(lam, flipped, X, lam[-1], 8),
                                band_responses_exact(lam, U, X, lam[-1], 8), atol=1e-10)
-    np.testing.assert_array_equal(dominant_frequency(lam, flipped, lam[-1]),
-                                  dominant_frequency(lam, U, lam[-1]))
-
-
-def test_dominant_frequency_of_a_path_graph():
-    # On a path, the end points carry the most weight of the highest and of low eigenvectors;
-    # every nu is a normalised eigenvalue in [0, 1].
-    lam, U = fourier_basis(path_laplacian(12))
-    nu = dominant_frequency(lam, U, lam[-1])
-    assert np.all((nu >= 0.0) & (nu <= 1.0))
-    assert set(np.round(nu, 12)) <= set(np.round(lam / lam[-1], 12))
 
 
 def test_signal_frequency_argmax_and_weighted_centre():
@@ -125,4 +113,3 @@ def test_empty_and_single_vertex_graphs():
     assert lam.size == 0 and U.shape == (0, 0)
     lam, U = fourier_basis(np.zeros((1, 1)))
     np.testing.assert_allclose(lam, [0.0])
-    assert dominant_frequency(lam, U, 0.0)[0] == 0.0
