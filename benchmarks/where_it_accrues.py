@@ -6,8 +6,8 @@ pieces of travel, each labelled by what the robot did in it: `turn` (turning fas
 0.1 rad/s anywhere in the piece: a pivot covers no ground), else what it did over most of it,
 `row` (inside the block, driving straight) or `headland` (straight, outside the rows). Per
 label: the pieces' mean relative translation error in % of their length (the pose at the
-piece's end seen from its start, as RPE) and their mean absolute heading
-error, the two things ATE grows from.
+piece's end seen from its start, as RPE) and their mean absolute heading error, the two
+things ATE grows from.
 
     .venv/bin/python benchmarks/where_it_accrues.py --drive spiral-303 --peer GenZ-ICP
 

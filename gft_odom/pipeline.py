@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -27,11 +27,8 @@ from gft_odom.config import GftOdomConfig
 from gft_odom.core.bounds_watch import BoundsWatch
 from gft_odom.core.constants import NS_PER_S
 from gft_odom.core.deferred import Deferred, resolved
-from gft_odom.core.geometry import (
-    rpy_transform,
-    sensor_to_base_poses,
-    transform_points,
-)
+from gft_odom.core.degeneracy import FLAT_CLOUD_STD_M, thinnest_axis_std_m
+from gft_odom.core.geometry import rpy_transform, sensor_to_base_poses, transform_points
 from gft_odom.core.localisation import DriveMap
 from gft_odom.core.memory import (
     TRIM_AFTER_POINTS,
@@ -41,20 +38,16 @@ from gft_odom.core.memory import (
 from gft_odom.core.registration import ScanRegistration
 from gft_odom.core.registration.scan_registration import TRUSTED_STATUSES
 from gft_odom.core.spectral.bands import BandMask
-from gft_odom.core.spectral.filter import PointFrequencies, SpectralFilter
+from gft_odom.core.spectral.filter import PointFrequencies, SpectralConfig, SpectralFilter
 from gft_odom.core.trajectory import Trajectory, TrajectoryRecorder
 from gft_odom.core.types import Scan
 from gft_odom.errors import ConfigError, SpectralError
 
 log = logging.getLogger(__name__)
 
-# A cloud whose thinnest principal axis has a standard deviation below this is flat (ground
-# only, a wall): ICP cannot observe the in-plane motion (x, y, yaw on ground) but converges
-# with a confident covariance and drags the map along, so the motion prediction is used
-# instead. Orchard scans measure >= 0.69 m on that axis whatever the band mask, bare sim
-# ground 0.01-0.04 m (docs/robustness.md).
-FLAT_CLOUD_STD_M = 0.05
 DEGENERATE_STATUS = 'fallback_degenerate'
+# The scan-line weight of the frequency the map's anchors keep their points by.
+ANCHOR_SCAN_LINE_WEIGHT = 'distance'
 # Why a scan can be rejected before registration (FrameResult.status is 'rejected_<reason>').
 REJECTION_REASONS = ('empty', 'degenerate', 'out_of_order', 'clock_jump')
 # Accepted scans that restarted the clock: counted in status_counts beside the statuses.
@@ -123,15 +116,13 @@ def _nu_and_band(freqs: PointFrequencies) -> tuple[np.ndarray, np.ndarray]:
     return freqs.nu, freqs.band
 
 
-def thinnest_axis_std_m(points_xyz: np.ndarray) -> float:
-    """Standard deviation of the points along their thinnest principal axis (inf if < 10)."""
-    if points_xyz.shape[0] < 10:
-        return float('inf')  # too few to judge: registration's min_points decides
-    # Axis-major (3, N): the mean and the 3 x 3 product run ~3x faster than on (N, 3) rows.
-    axes = np.ascontiguousarray(points_xyz.T, dtype=np.float64)
-    centred = axes - axes.mean(axis=1, keepdims=True)
-    scatter = centred @ centred.T / points_xyz.shape[0]
-    return float(np.sqrt(max(np.linalg.eigvalsh(scatter)[0], 0.0)))
+def anchor_filter(spectral: SpectralConfig) -> SpectralFilter | None:
+    """The filter of the frequency the map's anchors keep their points by, when it is not the
+    published one: on the scan-line graph, distance weights (with range-slope weights the
+    anchors lost a record drive, docs/method.md). None: the anchors read the published ones."""
+    if spectral.graph != 'scan_line' or spectral.scan_line_weight == ANCHOR_SCAN_LINE_WEIGHT:
+        return None
+    return SpectralFilter.from_config(replace(spectral, scan_line_weight=ANCHOR_SCAN_LINE_WEIGHT))
 
 
 def base_to_sensor(config: GftOdomConfig) -> np.ndarray:
@@ -147,6 +138,7 @@ class OdometryPipeline:
         self.record_trajectory = record_trajectory
         self.config = config
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.anchor_filter = anchor_filter(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.registration = ScanRegistration.from_config(config.registration)
         self.T_base_sensor = base_to_sensor(config)
@@ -265,7 +257,7 @@ class OdometryPipeline:
         t1 = time.perf_counter()
         # 2. Graph-frequency band-pass: per-point band, keep the bands of the mask. A mask
         # that keeps every point leaves the frequencies to after the pose.
-        kept, kept_freqs, after_pose = cropped, None, None
+        kept, kept_freqs, after_pose, keep = cropped, None, None, None
         if self.use_filter and len(cropped):
             if freqs is None and self.frequencies_after_pose:
                 # The crop keeps only finite points, so the mask keeps them all.
@@ -276,7 +268,7 @@ class OdometryPipeline:
                     freqs = self.spectral_filter.scan_frequencies(cropped, self.band_mask.n_bands)
                 keep = self._precomputed_keep(cropped, freqs)
                 if keep.all():  # all-pass: no copy of the scan
-                    kept_freqs = Deferred.of((freqs.nu, freqs.band))
+                    kept_freqs, keep = Deferred.of((freqs.nu, freqs.band)), None
                 else:
                     kept = kept.select(keep)
                     kept_freqs = Deferred.of((freqs.nu[keep], freqs.band[keep]))
@@ -288,11 +280,12 @@ class OdometryPipeline:
                       'prediction', scan.stamp_ns, flat_std_m)
             reg = self.registration.advance_with_prediction(scan.stamp_ns, DEGENERATE_STATUS)
         else:
-            nu = None if kept_freqs is None else kept_freqs.then(
-                lambda nu_band: self._registration_nu(nu_band[0], scan.stamp_ns))
+            nu = None if kept_freqs is None else self._anchor_nu(cropped, keep, kept_freqs,
+                                                                 scan.stamp_ns)
             reg = self.registration.register(kept.points_xyz, scan.stamp_ns,
                                              kept.time_offset_s,
-                                             nu=nu if after_pose else resolved(nu),
+                                             nu=nu if after_pose or self.anchor_filter
+                                             else resolved(nu),
                                              defer_map_update=True)
         t3 = time.perf_counter()
         # 4. Update: odom -> base_link, trajectory, counters.
@@ -330,6 +323,22 @@ class OdometryPipeline:
         except Exception as exc:
             raise SpectralError(f'the frequencies of the scan at {cropped.stamp_ns} ns failed '
                                 f'after its pose: {exc!r}') from exc
+
+    def _anchor_nu(self, cropped: Scan, keep: np.ndarray | None, kept_freqs: Deferred,
+                   stamp_ns: int) -> Deferred:
+        """The frequencies the map's anchors keep the kept points by: the published ones, or
+        (`anchor_filter`) their own, computed only if a keyframe reads them."""
+        if self.anchor_filter is None:
+            return kept_freqs.then(lambda nu_band: self._registration_nu(nu_band[0], stamp_ns))
+
+        def compute() -> np.ndarray:
+            try:
+                nu = self.anchor_filter.scan_frequencies(cropped, self.band_mask.n_bands).nu
+            except Exception as exc:
+                raise SpectralError(f'the anchor frequencies of the scan at {stamp_ns} ns '
+                                    f'failed: {exc!r}') from exc
+            return self._registration_nu(nu if keep is None else nu[keep], stamp_ns)
+        return Deferred(compute)
 
     def _registration_nu(self, nu: np.ndarray | None, stamp_ns: int) -> np.ndarray | None:
         """The frequencies registration sees: the scan's, or (the ablation control
@@ -382,6 +391,7 @@ class OdometryPipeline:
         if config.registration != self.config.registration:
             raise ConfigError('registration parameters can only change before the first scan')
         self.spectral_filter = SpectralFilter.from_config(config.spectral)
+        self.anchor_filter = anchor_filter(config.spectral)
         self.band_mask = BandMask.parse(config.spectral.band_mask, config.spectral.n_bands)
         self.config = config
 
@@ -411,15 +421,13 @@ class OdometryPipeline:
         """The last scan into the drive map, deskewed as the odometry's map got it, when it was
         trusted and is a keyframe's distance or turn from the last one taken."""
         left, self._left_for_drive_map = self._left_for_drive_map, None
-        if left is None:
-            return
-        status, T_world_sensor, kept, kept_freqs = left
+        status, T_world_sensor, kept, kept_freqs = left or ('none', None, (), None)
         if status not in TRUSTED_STATUSES or not len(kept) or not self.drive_map.due(
                 T_world_sensor, self.config.registration.keyframe_distance_m):
             return
         try:
             nu = None if kept_freqs is None else kept_freqs.get()[0]
-        except SpectralError:
+        except SpectralError:  # they failed after the pose: the points still go in
             nu = None
         points = self.registration.deskewed_like_last(kept.points_xyz)
         self.drive_map.add_scan(T_world_sensor, points, nu)

@@ -111,17 +111,21 @@ def test_a_call_between_a_pose_and_its_update_map_sees_the_scan_finished(row_sca
 
 
 def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplog):
-    """The second scan's frequencies raise (its keyframe replaces the first's, which was not
-    deskewed): its pose and keyframe stay (the keyframe without smoothness), the warning says
-    so, and the scans after it are as without the failure."""
+    """The second scan's frequencies raise, the published ones and the anchors' (its keyframe
+    replaces the first's, which was not deskewed): its pose and keyframe stay (the keyframe
+    without smoothness), the warning says so, and the scans after it are as without the
+    failure."""
     pipeline = OdometryPipeline(GftOdomConfig())
-    compute = pipeline.spectral_filter.scan_frequencies
+    assert pipeline.anchor_filter is not None  # the anchors have their own definition
 
-    def failing_once(cropped, n_bands):
-        if cropped.stamp_ns == row_scans[1].stamp_ns:
-            raise ValueError('a broken spectrum')
-        return compute(cropped, n_bands)
-    pipeline.spectral_filter.scan_frequencies = failing_once
+    def failing_once(compute):
+        def compute_or_fail(cropped, n_bands):
+            if cropped.stamp_ns == row_scans[1].stamp_ns:
+                raise ValueError('a broken spectrum')
+            return compute(cropped, n_bands)
+        return compute_or_fail
+    for spectral_filter in (pipeline.spectral_filter, pipeline.anchor_filter):
+        spectral_filter.scan_frequencies = failing_once(spectral_filter.scan_frequencies)
     results = []
     for scan in row_scans[:8]:
         results.append(pipeline.register_frame(scan))
@@ -137,3 +141,22 @@ def test_frequencies_that_fail_after_the_pose_lose_nothing_else(row_scans, caplo
         assert a.status == b.status
         np.testing.assert_allclose(a.T_world_sensor, b.T_world_sensor, atol=1e-9)
     assert all(np.isfinite(r.nu).any() for r in results[2:])
+
+
+def test_the_anchors_keep_their_own_frequency_when_the_published_one_fails(row_scans):
+    """The published frequency (range-slope weights) and the anchors' (distance weights) are
+    computed apart: one failing costs the other nothing; with distance weights published, the
+    anchors read those."""
+    pipeline = OdometryPipeline(GftOdomConfig())
+
+    def broken(cropped, n_bands):
+        raise ValueError('a broken spectrum')
+    pipeline.spectral_filter.scan_frequencies = broken
+    for scan in row_scans[:8]:
+        pipeline.register_frame(scan)
+        pipeline.update_map()
+    keyframes = _map_smoothness(pipeline)
+    assert keyframes and all(np.isfinite(k).any() for k in keyframes)
+    same = OdometryPipeline(with_values(GftOdomConfig(), {
+        'spectral.scan_line_weight': 'distance'}))
+    assert same.anchor_filter is None

@@ -116,7 +116,7 @@ def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
         run = run_method(entry.method, sequence, entry.config(base),
                          ground_truth=read_ground_truth(sequence.gt_path))
     except (MemoryError, RuntimeError) as exc:
-        if ALL_METHODS[entry.method][1] is not None:
+        if _is_ours(entry.method):
             raise
         nothing = Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
         return ({'label': entry.label, 'crashed': f'{type(exc).__name__}: {exc}'},
@@ -126,6 +126,11 @@ def run_entry(entry: Entry, sequence: BenchSequence, base: GftOdomConfig
     metrics['kitti_drift_pct'] = kitti_drift_pct(metrics)
     metrics['rpe_10m_pct'] = metrics.get(f'rpe_drift_pct_{RPE_SHORT_M:g}m')
     return metrics, _error_curve(run), run.replay.sensor_trajectory
+
+
+def _is_ours(method: str) -> bool:
+    """Our pipeline (it has a registration mode) rather than a peer."""
+    return ALL_METHODS[method][1] is not None
 
 
 def cached_trajectory(cache_dir: Path, entry: Entry, sequence: BenchSequence,
@@ -147,9 +152,8 @@ def pair_file(cache_dir: Path, entry: Entry, sequence: BenchSequence,
     change that leaves the config alone needs --fresh.)"""
     # kiss-icp's and the peers' odometry ignores our config; their scoring does not, so their
     # key holds the evaluation and ground-truth sections (a changed scoring re-measures them).
-    ours = ALL_METHODS[entry.method][1] is not None
     config = method_config(entry.config(base), entry.method)
-    keyed = (dataclasses.asdict(config) if ours else
+    keyed = (dataclasses.asdict(config) if _is_ours(entry.method) else
              [dataclasses.asdict(config.evaluation), dataclasses.asdict(config.ground_truth)])
     key = json.dumps([entry.label, entry.method, list(entry.overrides), keyed],
                      sort_keys=True, default=str)

@@ -1,27 +1,23 @@
 """where_it_accrues: a pivot's error lands in a `turn` piece, a row's in `row` pieces."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_script
 
+from gft_odom.core.geometry import rpy_transform
 from gft_odom.core.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _script():
-    sys.path.insert(0, str(ROOT / 'test'))
-    from helpers import load_script
     return load_script(ROOT / 'benchmarks' / 'where_it_accrues.py')
 
 
 def _pose(x, y, yaw):
-    pose = np.eye(4)
-    pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    pose[:2, 3] = x, y
-    return pose
+    return rpy_transform((x, y, 0.0), (0.0, 0.0, yaw))
 
 
 def _drive():

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from gft_odom.config import GftOdomConfig, with_values
+from gft_odom.core.degeneracy import thinnest_axis_std_m
 from gft_odom.core.geometry import invert_transform
 from gft_odom.core.types import Scan
 from gft_odom.io.bags import ScanBagReader
-from gft_odom.pipeline import DEGENERATE_STATUS, OdometryPipeline, thinnest_axis_std_m
+from gft_odom.pipeline import DEGENERATE_STATUS, OdometryPipeline
 from gft_odom.replay import ReplayResult, summarize
 
 N_GOOD = 4  # good scans before the degenerate one (a map and a velocity to predict with)

@@ -96,10 +96,10 @@ class SpectralConfig:
     # smooth runs of points on ground and trunks (neighbours a few cm apart) from the ragged
     # canopy.
     scan_line_sigma_m: float = 0.05
-    # How scan-line edges are weighed (graph.SCAN_LINE_WEIGHTS): 'distance' (Gaussian of the
-    # 3-D step: nu falls with range) or 'range_slope' (Gaussian of the range slope along the
-    # ring: range-invariant).
-    scan_line_weight: str = 'distance'
+    # How scan-line edges are weighed (graph.SCAN_LINE_WEIGHTS): 'range_slope' (Gaussian of the
+    # range slope along the ring: range-invariant; tells the surface best on held-out labelled
+    # scans, docs/method.md) or 'distance' (Gaussian of the 3-D step: nu falls with range).
+    scan_line_weight: str = 'range_slope'
     # The paper's slices: thickness h (a VLP-16 ring spacing is 2 deg, ~0.35 m at 10 m; 0.25 m
     # slices hold about one ring per range) and the z range sliced (ground near z = -0.7 m,
     # citrus trees 3-4 m tall). Points outside it have no spectrum (band 0) and are kept.
