@@ -43,7 +43,7 @@ from gft_odom.core.geometry import invert_transform, rpy_transform
 from gft_odom.core.localisation import DriveMap, Localiser, PriorMap
 from gft_odom.core.registration.local_map import ANCHOR_SMOOTHNESS
 from gft_odom.core.registration.sweep import SMOOTH_NU
-from gft_odom.pipeline import OdometryPipeline
+from gft_odom.pipeline import DRIVE_MAP_STATUSES, OdometryPipeline
 from gft_odom.sim.later_day import simulate_day
 from gft_odom.sim.orchard import CANOPY
 from gft_odom.sim.simulator import SimConfig
@@ -53,7 +53,6 @@ START_ERROR = rpy_transform((0.2, -0.15, 0.0), (0.0, 0.0, 0.03))
 BIN_M = 50.0
 # A point is smooth (ground, trunks, posts) at this frequency: the map anchors' cut.
 SMOOTH_CUT = ANCHOR_SMOOTHNESS * SMOOTH_NU
-TRUSTED = ('first', 'ok', 'recovered')
 
 
 def drive(sim, n_scans: int | None, config: GftOdomConfig):
@@ -87,7 +86,8 @@ def teach(sim, n_scans, config) -> tuple[DriveMap, np.ndarray, dict]:
             T_map_sim = result.T_world_sensor @ invert_transform(truth)
         true_xyz.append(truth[:3, 3])
         odometry.append(result.T_world_sensor @ invert_transform(truth))  # sim -> map, here
-        if result.status in TRUSTED and drive_map.due(result.T_world_sensor, every_m):
+        if result.status in DRIVE_MAP_STATUSES and drive_map.due(result.T_world_sensor,
+                                                                 every_m):
             drive_map.add_scan(result.T_world_sensor, points, result.nu, surface=surface)
     map_day = {'true_xyz': np.asarray(true_xyz), 'T_map_sim_here': np.asarray(odometry)}
     end = map_day['T_map_sim_here'][-1] @ invert_transform(T_map_sim)

@@ -124,6 +124,30 @@ class NodeConfig:
 
 
 @dataclass(frozen=True)
+class LocalisationConfig:
+    """Localisation in a map an earlier drive saved (`~/save_map`, `replay --save-map`)."""
+
+    # The map (PCD in its run's odom frame); empty: odometry only. `~` is expanded. Changing
+    # it at run time loads the new map (`~/load_map` loads it again).
+    map_file: str = ''
+    # Where base_link is in the map at the first scan after the map is loaded: x (m), y (m),
+    # yaw (rad). `/initialpose` (RViz's "2D Pose Estimate") sets it again at any time.
+    initial_pose_xy_yaw: tuple[float, ...] = (0.0, 0.0, 0.0)
+    # The frame of the map (REP 105: localisation publishes map -> odom).
+    map_frame: str = 'map'
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first value that cannot work."""
+        if len(self.initial_pose_xy_yaw) != 3 or not all(
+                math.isfinite(v) for v in self.initial_pose_xy_yaw):
+            raise ConfigError(f'initial_pose_xy_yaw must be 3 finite numbers (x m, y m, yaw '
+                              f'rad), got {list(self.initial_pose_xy_yaw)}')
+        if not self.map_frame or self.map_frame.startswith('/'):
+            raise ConfigError(f'map_frame must be a non-empty frame id without a leading "/", '
+                              f'got {self.map_frame!r}')
+
+
+@dataclass(frozen=True)
 class GftOdomConfig:
     """All parameters, grouped by section as in `config/*.yaml`."""
 
@@ -131,11 +155,15 @@ class GftOdomConfig:
     spectral: SpectralConfig = field(default_factory=SpectralConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     node: NodeConfig = field(default_factory=NodeConfig)
+    localisation: LocalisationConfig = field(default_factory=LocalisationConfig)
     ground_truth: GroundTruthConfig = field(default_factory=GroundTruthConfig)
     evaluation: MetricsConfig = field(default_factory=MetricsConfig)
 
     def validate(self) -> None:
         """Validate every section; the error names the section."""
+        if self.localisation.map_frame in (self.node.odom_frame, self.node.base_frame):
+            raise ConfigError('localisation.map_frame must differ from node.odom_frame and '
+                              'node.base_frame')
         for section in dataclasses.fields(self):
             try:
                 getattr(self, section.name).validate()

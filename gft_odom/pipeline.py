@@ -46,6 +46,8 @@ from gft_odom.errors import ConfigError, SpectralError
 log = logging.getLogger(__name__)
 
 DEGENERATE_STATUS = 'fallback_degenerate'
+# Scans the drive map takes: trusted and deskewed with a known motion (not the first scan).
+DRIVE_MAP_STATUSES = tuple(s for s in TRUSTED_STATUSES if s != 'first')
 # The scan-line weight of the frequency the map's anchors keep their points by.
 ANCHOR_SCAN_LINE_WEIGHT = 'distance'
 # Why a scan can be rejected before registration (FrameResult.status is 'rejected_<reason>').
@@ -155,10 +157,8 @@ class OdometryPipeline:
         # What the last scan left for `update_map`: (its deferred frequencies or None, its
         # timings).
         self._left_after_pose: tuple | None = None
-        # What the last scan leaves for the drive map: (status, pose, kept cloud, frequencies).
-        self._left_for_drive_map: tuple | None = None
-        # Everything the drive saw (what ~/save_map writes), and where it last took a scan.
-        self.drive_map = DriveMap()
+        # Everything the drive saw (~/save_map writes it); what the last scan leaves for it.
+        self.drive_map, self._left_for_drive_map = DriveMap(), None
         self.n_resets = 0  # odometry runs started over (reset(), clock reset)
 
     def reset(self) -> None:
@@ -418,11 +418,10 @@ class OdometryPipeline:
         return time.perf_counter() - t0
 
     def _add_to_drive_map(self) -> None:
-        """The last scan into the drive map, deskewed as the odometry's map got it, when it was
-        trusted and is a keyframe's distance or turn from the last one taken."""
+        """The last scan into the drive map (deskewed as the odometry's map got it), when due."""
         left, self._left_for_drive_map = self._left_for_drive_map, None
         status, T_world_sensor, kept, kept_freqs = left or ('none', None, (), None)
-        if status not in TRUSTED_STATUSES or not len(kept) or not self.drive_map.due(
+        if status not in DRIVE_MAP_STATUSES or not len(kept) or not self.drive_map.due(
                 T_world_sensor, self.config.registration.keyframe_distance_m):
             return
         try:

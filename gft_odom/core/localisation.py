@@ -19,8 +19,10 @@ import numpy as np
 import open3d as o3d
 
 from gft_odom.core.geometry import invert_transform, rotation_vector, transform_points
+from gft_odom.core.registration.config import RegistrationConfig
 from gft_odom.core.registration.local_map import KEYFRAME_ROTATION_RAD, NORMAL_NEIGHBOURS
 from gft_odom.core.registration.matching import MapTarget, point_to_plane_icp
+from gft_odom.core.registration.uncertainty import PoseUncertainty, icp_information
 from gft_odom.core.registration.voxels import voxel_downsample_indices, voxel_keys
 from gft_odom.errors import RegistrationError
 
@@ -40,6 +42,8 @@ MAX_CORRECTION_RAD = 0.1
 MIN_POINTS = 100
 # A drive map stops growing here (~80 MB; a 2 km day at 0.3 m voxels is about 3 M points).
 MAX_DRIVE_MAP_POINTS = 5_000_000
+# A fit's covariance: the odometry's floor and prior (registration.min_std_*, fallback_std_*).
+UNCERTAINTY = PoseUncertainty.from_config(RegistrationConfig())
 
 
 class DriveMap:
@@ -177,6 +181,9 @@ class LocalisationResult:
     inlier_rmse_m: float
     status: str  # 'localised', 'not_fitted' (odometry carried the pose), 'too_few_points'
     correction_m: float = 0.0  # how far the match moved the prediction
+    # (6, 6) of the pose (x, y, z, rot_x, rot_y, rot_z; map axes, about the sensor), from the
+    # final pairs as the odometry's; the inflated prior when the map did not fit.
+    covariance: np.ndarray = field(default_factory=lambda: np.diag(UNCERTAINTY.fallback_var))
 
 
 class Localiser:
@@ -214,8 +221,12 @@ class Localiser:
                                       fit.inlier_rmse, 'not_fitted', moved_m)
         self.T_map_odom = fit.transformation @ invert_transform(T_odom_sensor)
         self.n_localised += 1
+        information = icp_information(points[source_index], self.prior.target, fit,
+                                      fit.inlier_rmse)
+        covariance = UNCERTAINTY.covariance('localised', information,
+                                            fit.transformation[:3, :3])
         return LocalisationResult(fit.transformation, self.T_map_odom.copy(), fit.fitness,
-                                  fit.inlier_rmse, 'localised', moved_m)
+                                  fit.inlier_rmse, 'localised', moved_m, covariance)
 
 
 

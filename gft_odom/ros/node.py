@@ -51,6 +51,7 @@ from gft_odom.ros.conversions import blob_to_msg, odometry_msg, pose_stamped_msg
 from gft_odom.ros.dds import use_large_message_profile
 from gft_odom.ros.diagnostics import OdometryDiagnostics, diagnostic_array, stale_scan_text
 from gft_odom.ros.input_qos import AdaptiveInput, overridable
+from gft_odom.ros.localisation import MapLocalisationMixin
 from gft_odom.ros.log_bridge import forward_python_logging, stop_forwarding
 from gft_odom.ros.parameters import (
     check_overrides,
@@ -73,7 +74,7 @@ def _ros_value(value):
     return list(value) if isinstance(value, tuple) else value
 
 
-class FilterOdomNode(AdaptiveInput, Node):
+class FilterOdomNode(AdaptiveInput, MapLocalisationMixin, Node):
     """Runs `OdometryPipeline` on every incoming scan and publishes its results."""
 
     def __init__(self, **kwargs):
@@ -130,6 +131,7 @@ class FilterOdomNode(AdaptiveInput, Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/save_map', self._on_save_map)
+        self._start_localisation()
         # Wall-clock timers: with use_sim_time the ROS clock only moves with /clock (a lockstep
         # replay advances it 0.1 s per scan), and these are about the process, not the data.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -160,10 +162,11 @@ class FilterOdomNode(AdaptiveInput, Node):
         except GftOdomError as exc:
             self.get_logger().warning(f'parameter change refused: {exc}')
             return SetParametersResult(successful=False, reason=str(exc))
-        self.config = new_config
+        old_config, self.config = self.config, new_config
         self.pipeline.reconfigure(new_config)
         self.path_poses = collections.deque(self.path_poses,
                                             maxlen=new_config.node.path_max_length)
+        self._reconfigure_localisation(old_config)
         return SetParametersResult(successful=True)
 
     # -- per scan --------------------------------------------------------------------------
@@ -202,6 +205,10 @@ class FilterOdomNode(AdaptiveInput, Node):
         odometry_out_s = self._publish(result, msg.header)
         latency_s = odometry_out_s - t0
         self.latencies_s.append(latency_s)
+        try:
+            self._localise(result)
+        except Exception as exc:  # the odometry is out; a failed localisation costs only it
+            self._warn('failed', f'localising the scan at {scan.stamp_ns} ns failed: {exc!r}')
         # The map work a keyframe leaves, once the odometry is out (the next scan waits).
         try:
             self.pipeline.update_map()
@@ -333,9 +340,10 @@ class FilterOdomNode(AdaptiveInput, Node):
             self.scan_period_s(), busy_s=list(self.busy_s)[-100:], weak=self._weak,
             weak_warn_ratio=self.config.node.weak_direction_warn_ratio,
             bounds_message=self.pipeline.bounds_watch.message)
-        self.diagnostics_pub.publish(diagnostic_array(
-            assessment, self.get_clock().now().to_msg(), f'{self.get_name()}: odometry',
-            self.last_frame_id or 'lidar'))
+        array = diagnostic_array(assessment, self.get_clock().now().to_msg(),
+                                 f'{self.get_name()}: odometry', self.last_frame_id or 'lidar')
+        array.status.append(self.localisation_status())
+        self.diagnostics_pub.publish(array)
 
     def _on_reset(self, request, response):
         """`~/reset`: start the odometry again from the identity, with an empty map."""

@@ -20,7 +20,8 @@ from gft_odom.errors import ConfigError
 # Read only when the node starts (a change needs a restart): declared read_only.
 STARTUP_ONLY_PREFIXES = ('registration.', 'node.odom_frame', 'node.base_frame', 'evaluation.',
                          'node.base_to_sensor', 'node.publish_tf', 'ground_truth.',
-                         'node.input_queue_depth', 'node.input_reliability')
+                         'node.input_queue_depth', 'node.input_reliability',
+                         'localisation.map_frame')
 # Parameters every rclpy node has, and the qos_overrides namespace rclpy reads itself.
 ROS_OWN_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 ROS_OWN_PREFIXES = ('qos_overrides.',)
