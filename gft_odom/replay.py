@@ -20,7 +20,7 @@ import numpy as np
 
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.geometry import transform_points
-from gft_odom.core.localisation import MapLocalisation, PriorMap
+from gft_odom.core.localisation import MapLocalisation, PriorMap, planar_pose
 from gft_odom.core.metrics import TrajectoryEvaluator, stamp_audit
 from gft_odom.core.spectral.bands import band_of_nu
 from gft_odom.core.trajectory import Trajectory
@@ -98,15 +98,15 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
                max_scans: int | None = None,
                progress: Callable[[int, int], None] | None = None,
                save_map_dir: str | Path | None = None,
-               pipeline: OdometryPipeline | None = None,
-               localisation: MapLocalisation | None = None) -> ReplayResult:
+               pipeline: OdometryPipeline | None = None) -> ReplayResult:
     """Replay the scans of `bag_paths` through the pipeline; evaluate against `gt_path`.
     `save_map_dir`: write the final map and the trajectory there (`write_map`), as the
     node's `~/save_map` does. `pipeline`: a study's own (a subclass, built from `config`);
-    None: `OdometryPipeline(config)`. `localisation`: also localise every scan in its map
-    (its start set with `MapLocalisation.start_at`)."""
+    None: `OdometryPipeline(config)`. With `localisation.map_file` every scan is also
+    localised in that map, from `localisation.initial_pose_xy_yaw`."""
     ground_truth = read_ground_truth(gt_path) if gt_path is not None else None
     pipeline = pipeline if pipeline is not None else OdometryPipeline(config)
+    localisation = map_localisation(config, pipeline.T_base_sensor)
     rng = np.random.default_rng(0)
     latency, map_update, stamps, points_in, points_kept, statuses = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
@@ -325,6 +325,19 @@ def write_map(folder: str | Path, points_xyz: np.ndarray, nu: np.ndarray, n_band
               frame_id=frame_id)
     write_tum(folder / MAP_TRAJECTORY_FILE, trajectory)
     return folder / MAP_FILE, folder / MAP_TRAJECTORY_FILE
+
+
+def map_localisation(config: GftOdomConfig, T_base_sensor: np.ndarray
+                     ) -> MapLocalisation | None:
+    """Localisation in `localisation.map_file` from `localisation.initial_pose_xy_yaw` (None
+    without a map file); MapError when the map cannot serve."""
+    cfg = config.localisation
+    if not cfg.map_file:
+        return None
+    localisation = MapLocalisation(read_prior_map(cfg.map_file, config.node.odom_frame),
+                                   T_base_sensor)
+    localisation.start_at(planar_pose(*cfg.initial_pose_xy_yaw))
+    return localisation
 
 
 def read_prior_map(path: str | Path, frame_id: str = 'odom') -> PriorMap:

@@ -97,8 +97,14 @@ def transform_msg(T_parent_child: np.ndarray, stamp_ns: int, parent: str,
     return msg
 
 
+def pose_matrix(pose: Pose) -> np.ndarray:
+    """The 4x4 transform of a geometry_msgs/Pose (its quaternion normalised)."""
+    from gft_odom.core.geometry import poses_from_xyz_quat
+    p, q = pose.position, pose.orientation
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=float)
+    return poses_from_xyz_quat([p.x, p.y, p.z], quat / np.linalg.norm(quat))[0]
+
+
 def odometry_to_pose(msg: Odometry) -> np.ndarray:
     """The 4x4 pose in an Odometry message."""
-    from gft_odom.core.geometry import poses_from_xyz_quat
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    return poses_from_xyz_quat([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])[0]
+    return pose_matrix(msg.pose.pose)

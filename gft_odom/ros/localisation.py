@@ -20,11 +20,10 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_srvs.srv import Trigger
 
-from gft_odom.core.geometry import poses_from_xyz_quat
-from gft_odom.core.localisation import MapLocalisation, planar_pose
+from gft_odom.core.localisation import MapLocalisation
 from gft_odom.errors import GftOdomError
-from gft_odom.replay import read_prior_map
-from gft_odom.ros.conversions import ns_to_stamp, pose_msg, transform_msg
+from gft_odom.replay import map_localisation
+from gft_odom.ros.conversions import ns_to_stamp, pose_matrix, pose_msg, transform_msg
 
 # /diagnostics WARNs when the map has not fitted a scan for this long.
 NOT_FITTED_WARN_S = 2.0
@@ -53,15 +52,14 @@ class MapLocalisationMixin:
         cfg = self.config.localisation
         self.localisation, self.last_fit, self._last_fitted_s = None, None, None
         try:
-            prior = read_prior_map(cfg.map_file, self.config.node.odom_frame)
+            self.localisation = map_localisation(self.config, self.pipeline.T_base_sensor)
         except GftOdomError as exc:
             self.map_error = str(exc)
             self.get_logger().error(f'localisation off, odometry goes on: {exc}')
             return False
         self.map_error = None
-        self.localisation = MapLocalisation(prior, self.pipeline.T_base_sensor)
-        self.localisation.start_at(planar_pose(*cfg.initial_pose_xy_yaw))
-        self.get_logger().info(f'map {cfg.map_file}: {prior.points_xyz.shape[0]} points; '
+        n_points = self.localisation.prior.points_xyz.shape[0]
+        self.get_logger().info(f'map {cfg.map_file}: {n_points} points; '
                                f'starting at {list(cfg.initial_pose_xy_yaw)} '
                                f'({cfg.map_frame} frame) at the next scan')
         return True
@@ -93,14 +91,14 @@ class MapLocalisationMixin:
             self._warn('initial_pose', '/initialpose ignored: no map is loaded '
                        '(set localisation.map_file)')
             return
-        p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        xyz, quat = np.array([[p.x, p.y, p.z]]), np.array([[q.x, q.y, q.z, q.w]])
-        if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(quat))
-                and np.linalg.norm(quat) > 0.5):
+        q = msg.pose.pose.orientation
+        with np.errstate(invalid='ignore', divide='ignore'):
+            T = pose_matrix(msg.pose.pose)
+        if not (np.all(np.isfinite(T)) and np.linalg.norm([q.x, q.y, q.z, q.w]) > 0.5):
             self._warn('initial_pose', '/initialpose ignored: it is not finite')
             return
-        self.localisation.start_at(poses_from_xyz_quat(xyz, quat / np.linalg.norm(quat))[0])
-        self.get_logger().info(f'initial pose set in {frame}: x {p.x:.2f} y {p.y:.2f}')
+        self.localisation.start_at(T)
+        self.get_logger().info(f'initial pose set in {frame}: x {T[0, 3]:.2f} y {T[1, 3]:.2f}')
 
     def _localise(self, result) -> None:
         """The scan whose odometry is out, in the map: map -> odom and ~/map_pose."""

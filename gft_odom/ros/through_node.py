@@ -20,6 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -37,7 +38,13 @@ from gft_odom.io.pointcloud2 import CloudBlob, FieldSpec
 from gft_odom.params_file import config_to_yaml
 from gft_odom.pipeline import base_to_sensor
 from gft_odom.replay import ReplayResult, is_gps_ground_truth, summarize
-from gft_odom.ros.conversions import blob_to_msg, ns_to_stamp, odometry_to_pose, stamp_to_ns
+from gft_odom.ros.conversions import (
+    blob_to_msg,
+    ns_to_stamp,
+    odometry_to_pose,
+    pose_matrix,
+    stamp_to_ns,
+)
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +150,7 @@ class _Feeder:
                                                               domain_id)
         self.odometry: dict[int, np.ndarray] = {}
         self.kept_points: dict[int, int] = {}
+        self.map_poses: dict[int, np.ndarray] = {}  # T_map_base, with a map to localise in
         self.last_path: list = []
         # The node's odometry is latched: poses published before our reader was matched arrive.
         latched = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
@@ -160,6 +168,10 @@ class _Feeder:
             lambda m: self.kept_points.__setitem__(stamp_to_ns(m.header.stamp),
                                                    m.width * m.height),
             qos_profile_sensor_data)
+        self.node.create_subscription(
+            PoseWithCovarianceStamped, f'/{NODE_NAME}/map_pose',
+            lambda m: self.map_poses.__setitem__(stamp_to_ns(m.header.stamp),
+                                                 pose_matrix(m.pose.pose)), latched)
         self.clock_pub = self.node.create_publisher(Clock, '/clock', QoSProfile(depth=10))
         self.cloud_pub = self.node.create_publisher(
             PointCloud2, topic, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
@@ -315,6 +327,11 @@ def _replay_result(config, feeder: _Feeder, stamps, scan_stamps, latency, points
         points_kept=np.array([feeder.kept_points.get(s, -1) for s in scan_stamps]),
         statuses=statuses, skipped_messages=skipped, ground_truth=ground_truth,
         ground_truth_is_gps=gt_path is not None and is_gps_ground_truth(gt_path))
+    located = [s for s in stamps if s in feeder.map_poses]
+    if located:
+        replay.map_trajectory = Trajectory(np.array(located, dtype=np.int64), base_to_sensor_poses(
+            np.array([feeder.map_poses[s] for s in located]), base_to_sensor(config)))
+        replay.localisation_counts = {'answered': len(located)}
     replay.metrics = summarize(replay, config)
     replay.metrics['node_path_length'] = (len(feeder.last_path[0].poses) if feeder.last_path
                                           else 0)

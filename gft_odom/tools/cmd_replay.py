@@ -46,11 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_switches(p)
 
 
-def parse_initial_pose(text: str):
-    """'x,y,yaw' -> T_map_base; ConfigError with the reason."""
+def parse_initial_pose(text: str) -> tuple[float, float, float]:
+    """'x,y,yaw' -> (x, y, yaw); ConfigError with the reason."""
     import math
 
-    from gft_odom.core.localisation import planar_pose
     from gft_odom.errors import ConfigError
     try:
         x, y, yaw = (float(v) for v in text.split(','))
@@ -58,7 +57,7 @@ def parse_initial_pose(text: str):
         raise ConfigError(f'--initial-pose wants x,y,yaw (three numbers), got {text!r}') from None
     if not all(math.isfinite(v) for v in (x, y, yaw)):
         raise ConfigError(f'--initial-pose wants finite numbers, got {text!r}')
-    return planar_pose(x, y, yaw)
+    return x, y, yaw
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,6 +68,10 @@ def run(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     if args.no_filter:
         overrides.append('pipeline.use_spectral_filter=false')
+    if args.map is not None:
+        x, y, yaw = parse_initial_pose(args.initial_pose)
+        overrides += [f'localisation.map_file={Path(args.map).expanduser().resolve()}',
+                      f'localisation.initial_pose_xy_yaw=[{x!r}, {y!r}, {yaw!r}]']
     config = load_config(args.config, overrides)
     save_map = args.save_map
     if save_map is not None:
@@ -81,17 +84,6 @@ def run(args: argparse.Namespace) -> int:
         extra = {'node_exe': args.node_exe, 'log_path': Path(args.out) / 'node.log'}
     else:
         replay_fn, extra = run_replay, {}
-    if args.map is not None:
-        if args.through_node:
-            from gft_odom.errors import ConfigError
-            raise ConfigError('--map runs in-process; it does not combine with --through-node')
-        from gft_odom.core.localisation import MapLocalisation
-        from gft_odom.pipeline import base_to_sensor
-        from gft_odom.replay import read_prior_map
-        localisation = MapLocalisation(read_prior_map(args.map, config.node.odom_frame),
-                                       base_to_sensor(config))
-        localisation.start_at(parse_initial_pose(args.initial_pose))
-        extra['localisation'] = localisation
     if save_map is not None:
         extra['save_map_dir'] = save_map
     with progress_bar(None, 'replay', enabled=not args.quiet) as update:

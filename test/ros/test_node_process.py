@@ -143,3 +143,24 @@ def test_replay_cli_through_the_node_writes_the_results_folder(installed_node, o
     # The node's log goes with the results; no temporary folder is left behind.
     assert 'final counts:' in (out / 'node.log').read_text()
     assert not list(temp.glob('gft_odom_node_*'))
+
+
+def test_node_localises_in_a_saved_map_over_dds(installed_node, orchard_bag, ros_env,
+                                                 tmp_path):
+    """The node in its own process loads a map (localisation.map_file), publishes
+    ~/map_pose for every scan, near where its odometry puts the same drive."""
+    exe, env = installed_node
+    env.update({k: ros_env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    config = GftOdomConfig()
+    run_replay([orchard_bag.bag_path], config, max_scans=N_SCANS, save_map_dir=tmp_path / 'm')
+    with_map = with_values(config, {'localisation.map_file': str(tmp_path / 'm' / 'map.pcd')})
+    through_node = replay_through_node([orchard_bag.bag_path], with_map, max_scans=N_SCANS,
+                                       node_exe=str(exe), env=env,
+                                       log_path=tmp_path / 'node.log')
+    located = through_node.map_trajectory
+    assert located is not None and len(located) >= N_SCANS - 1
+    odometry = through_node.sensor_trajectory
+    at = np.searchsorted(odometry.stamps_ns, located.stamps_ns)
+    gap_m = np.linalg.norm(located.positions_xyz - odometry.positions_xyz[at], axis=1)
+    assert gap_m.max() < 0.1
+    assert 'map' in (tmp_path / 'node.log').read_text()
