@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import box_scene
 
 from gft_odom.core.geometry import invert_transform, rpy_transform, transform_points
 from gft_odom.core.localisation import DriveMap, Localiser, PriorMap
 from gft_odom.errors import RegistrationError
-from test.helpers import box_scene
 
 
 def test_the_drive_map_keeps_the_first_point_of_each_voxel_with_its_attributes():
