@@ -40,7 +40,7 @@ MIN_FITNESS = 0.3
 MAX_CORRECTION_M = 0.5
 MAX_CORRECTION_RAD = 0.1
 MIN_POINTS = 100
-# A drive map stops growing here (~80 MB; a 2 km day at 0.3 m voxels is about 3 M points).
+# A drive map stops growing here (36 bytes a point with its key, 180 MB).
 MAX_DRIVE_MAP_POINTS = 5_000_000
 # A fit's covariance: the odometry's floor and prior (registration.min_std_*, fallback_std_*).
 UNCERTAINTY = PoseUncertainty.from_config(RegistrationConfig())
@@ -51,7 +51,8 @@ class DriveMap:
     frame, with their frequency (NaN: none) and optional named per-point attributes.
 
     Buffers double as they fill and the voxel keys stay sorted, so adding a keyframe costs a
-    copy of the keys, not of the map: a 2 km day (about 3 M voxels) stays a few ms a keyframe.
+    copy of the keys, not of the map: about 20 ms a keyframe at 2.8 M points (measured on a
+    loaded 2-core machine; a 150 m drive leaves about 150 000).
     """
 
     def __init__(self, voxel_m: float = MAP_VOXEL_M, max_points: int = MAX_DRIVE_MAP_POINTS
