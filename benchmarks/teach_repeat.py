@@ -13,7 +13,9 @@ odometry and, beside it, localisers in the map that differ only in which points 
 - `frequency`: only the smooth points by their graph frequency (nu >= 0.3, the cut the
   odometry's map anchors use), in the map and in the scan;
 - `shuffled`: the same with the frequencies permuted (the map's once, each scan's), the
-  control for any effect of the frequency.
+  control for any effect of the frequency;
+- `weighted` (and `weighted_shuffled`, its control): every point, a pair's residual weighed by
+  its points' smoothness (rough: 0.25, smooth: 1).
 
 The start pose is the true one moved by 0.2 m, -0.15 m and 0.03 rad (a pose set by hand in
 RViz). Scored three ways: against the truth in the map frame without alignment (what a robot
@@ -42,7 +44,7 @@ from gft_odom.core.alignment import umeyama_alignment
 from gft_odom.core.geometry import invert_transform, rpy_transform
 from gft_odom.core.localisation import DriveMap, Localiser, PriorMap
 from gft_odom.core.registration.local_map import ANCHOR_SMOOTHNESS
-from gft_odom.core.registration.sweep import SMOOTH_NU
+from gft_odom.core.registration.sweep import SMOOTH_NU, smoothness_from_nu
 from gft_odom.pipeline import DRIVE_MAP_STATUSES, OdometryPipeline
 from gft_odom.sim.later_day import simulate_day
 from gft_odom.sim.orchard import CANOPY
@@ -53,6 +55,8 @@ START_ERROR = rpy_transform((0.2, -0.15, 0.0), (0.0, 0.0, 0.03))
 BIN_M = 50.0
 # A point is smooth (ground, trunks, posts) at this frequency: the map anchors' cut.
 SMOOTH_CUT = ANCHOR_SMOOTHNESS * SMOOTH_NU
+ROUGH_WEIGHT = 0.25
+ROLES = ('all', 'oracle', 'frequency', 'shuffled', 'weighted', 'weighted_shuffled')
 
 
 def drive(sim, n_scans: int | None, config: GftOdomConfig):
@@ -100,26 +104,37 @@ def _keep(nu: np.ndarray) -> np.ndarray:
     return np.nan_to_num(np.asarray(nu, dtype=float), nan=0.0) >= SMOOTH_CUT
 
 
-def localisers(prior: PriorMap, rng: np.random.Generator) -> dict:
-    """name -> (localiser, the scan's points it keeps: f(surface, nu) -> bool mask or None)."""
+def _weight(nu: np.ndarray) -> np.ndarray:
+    """The frequency's second role: rough points (canopy) count a quarter, smooth ones fully."""
+    return ROUGH_WEIGHT + (1.0 - ROUGH_WEIGHT) * smoothness_from_nu(nu, unknown=0.0)
+
+
+def localisers(prior: PriorMap, rng: np.random.Generator, roles) -> dict:
+    """name -> (localiser, f(surface, nu) -> (the scan's points kept or None, their weights or
+    None))."""
     stable = prior.attributes['surface'] != CANOPY
     shuffled_nu = rng.permutation(prior.nu)
-    return {
-        'all': (Localiser(prior, np.eye(4)), lambda surface, nu: None),
+    out = {
+        'all': (Localiser(prior, np.eye(4)), lambda surface, nu: (None, None)),
         'oracle': (Localiser(prior.selected(stable), np.eye(4)),
-                   lambda surface, nu: surface != CANOPY),
+                   lambda surface, nu: (surface != CANOPY, None)),
         'frequency': (Localiser(prior.selected(_keep(prior.nu)), np.eye(4)),
-                      lambda surface, nu: _keep(nu)),
+                      lambda surface, nu: (_keep(nu), None)),
         'shuffled': (Localiser(prior.selected(_keep(shuffled_nu)), np.eye(4)),
-                     lambda surface, nu: _keep(rng.permutation(nu))),
+                     lambda surface, nu: (_keep(rng.permutation(nu)), None)),
+        'weighted': (Localiser(prior.weighted(_weight(prior.nu)), np.eye(4)),
+                     lambda surface, nu: (None, _weight(nu))),
+        'weighted_shuffled': (Localiser(prior.weighted(_weight(shuffled_nu)), np.eye(4)),
+                              lambda surface, nu: (None, _weight(rng.permutation(nu)))),
     }
+    return {name: out[name] for name in roles}
 
 
 def repeat(sim, n_scans, config, prior: PriorMap, T_map_sim: np.ndarray, map_day: dict,
-           seed: int) -> dict:
+           seed: int, roles=ROLES) -> dict:
     """Odometry alone and each localiser on a later day: per-scan errors and summaries."""
     rng = np.random.default_rng(seed)
-    methods = localisers(prior, rng)
+    methods = localisers(prior, rng, roles)
     nearest = cKDTree(map_day['true_xyz'])
     errors = {name: [] for name in ('odometry', *methods)}
     to_map = {name: [] for name in errors}
@@ -144,7 +159,8 @@ def repeat(sim, n_scans, config, prior: PriorMap, T_map_sim: np.ndarray, map_day
         nu = result.nu if result.nu is not None else np.full(len(points), np.nan)
         for name, (loc, keep) in methods.items():
             t0 = time.perf_counter()
-            out = loc.localise(points, result.T_world_sensor, keep=keep(surface, nu))
+            kept, weights = keep(surface, nu)
+            out = loc.localise(points, result.T_world_sensor, keep=kept, weights=weights)
             work_s[name] += time.perf_counter() - t0
             statuses[name][out.status] = statuses[name].get(out.status, 0) + 1
             estimates[name] = out.T_map_sensor
@@ -181,6 +197,8 @@ def main() -> None:
     parser.add_argument('--route', default='spiral')
     parser.add_argument('--map-distance-m', type=float, default=150.0)
     parser.add_argument('--distance-m', type=float, default=150.0)
+    parser.add_argument('--roles', nargs='+', default=list(ROLES), choices=ROLES)
+    parser.add_argument('--changes', nargs='+', default=['same', 'changed'])
     parser.add_argument('--quick', action='store_true', help='coarse scans, 150 of each day')
     parser.add_argument('--out', type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -197,12 +215,12 @@ def main() -> None:
         map_error = map_day['end_error_m']
         print(f'block {seed}: map of {len(drive_map)} points, map day ends {map_error:.3f} m '
               f'off ({time.time() - t0:.0f} s)', flush=True)
-        for change in ('same', 'changed'):
+        for change in args.changes:
             sim, canopy = simulate_day(sim_config, seed, args.map_route, day=1,
                                        route=args.route, change=change,
                                        map_distance_m=args.map_distance_m,
                                        distance_m=args.distance_m)
-            run = repeat(sim, n_scans, config, prior, T_map_sim, map_day, seed)
+            run = repeat(sim, n_scans, config, prior, T_map_sim, map_day, seed, args.roles)
             run.update(seed=seed, change=change, canopy=canopy.kind,
                        map_points=len(drive_map), map_day_end_error_m=map_error)
             runs.append(run)

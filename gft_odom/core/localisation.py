@@ -164,6 +164,12 @@ class PriorMap:
         """The map a drive left, as it is."""
         return cls(drive_map.points_xyz, drive_map.nu, dict(drive_map.attributes))
 
+    def weighted(self, weights: np.ndarray) -> 'PriorMap':
+        """The same map, each point's residuals weighed by `weights`."""
+        target = MapTarget(self.points_xyz, self.target.normals, self.target.tree,
+                           np.asarray(weights, dtype=float))
+        return PriorMap(self.points_xyz, self.nu, self.attributes, target)
+
     def selected(self, keep: np.ndarray) -> 'PriorMap':
         """The map of the points `keep` (bool mask), normals kept as the whole map gave them."""
         keep = np.asarray(keep, dtype=bool)
@@ -197,9 +203,11 @@ class Localiser:
         self.n_not_fitted = 0
 
     def localise(self, points_sensor: np.ndarray, T_odom_sensor: np.ndarray,
-                 keep: np.ndarray | None = None) -> LocalisationResult:
+                 keep: np.ndarray | None = None, weights: np.ndarray | None = None
+                 ) -> LocalisationResult:
         """Match the scan `points_sensor` (deskewed to its stamp) whose odometry pose is
-        `T_odom_sensor`; `keep` (bool per point) restricts the points matched."""
+        `T_odom_sensor`; `keep` (bool per point) restricts the points matched, `weights` (per
+        point) weighs their residuals."""
         points = np.asarray(points_sensor, dtype=np.float64).reshape(-1, 3)
         source_index = voxel_downsample_indices(points, SOURCE_VOXEL_M)
         if keep is not None:
@@ -210,7 +218,8 @@ class Localiser:
             return LocalisationResult(T_pred, self.T_map_odom.copy(), 0.0, 0.0,
                                       'too_few_points')
         fit = point_to_plane_icp(np.ascontiguousarray(points[source_index]), self.prior.target,
-                                 T_pred, GATE_M, ITERATIONS, KERNEL_M)
+                                 T_pred, GATE_M, ITERATIONS, KERNEL_M,
+                                 None if weights is None else np.asarray(weights)[source_index])
         delta = invert_transform(T_pred) @ fit.transformation
         moved_m = float(np.linalg.norm(delta[:3, 3]))
         turned_rad = float(np.arccos(np.clip(0.5 * (np.trace(delta[:3, :3]) - 1.0), -1.0, 1.0)))

@@ -49,6 +49,7 @@ class MapTarget:
     points: np.ndarray  # (n, 3) world
     normals: np.ndarray  # (n, 3) unit
     tree: MapIndex | None = None
+    weights: np.ndarray | None = None  # (n,) a weight per map point (None: all 1)
 
     def __post_init__(self) -> None:
         if self.tree is None:
@@ -101,15 +102,17 @@ def euler_update(x: np.ndarray) -> np.ndarray:
 
 def point_to_plane_icp(source_xyz: np.ndarray, target: MapTarget, init: np.ndarray,
                        max_distance_m: float, max_iterations: int,
-                       kernel_scale_m: float) -> IcpResult:
-    """Align `source_xyz` (sensor frame) to `target` from `init` (T_world_sensor)."""
+                       kernel_scale_m: float, source_weights: np.ndarray | None = None
+                       ) -> IcpResult:
+    """Align `source_xyz` (sensor frame) to `target` from `init` (T_world_sensor); a pair's
+    residual is weighed by its source and map point's weights when they are given."""
     T = np.array(init, dtype=float)
     world = source_xyz @ T[:3, :3].T + T[:3, 3]
     nearest = ExactNearest(target, max_distance_m)
     pairs, fitness, rmse = _correspond(world, nearest)
     used = 0
     for used in range(1, max_iterations + 1):
-        update = _plane_step(world, target, pairs, kernel_scale_m)
+        update = _plane_step(world, target, pairs, kernel_scale_m, source_weights)
         previous = (fitness, rmse)
         T = update @ T
         world = world @ update[:3, :3].T + update[:3, 3]
@@ -132,7 +135,7 @@ def _correspond(world: np.ndarray, nearest: 'ExactNearest'):
 
 
 def _plane_step(world: np.ndarray, target: MapTarget, pairs: np.ndarray,
-                kernel_scale_m: float) -> np.ndarray:
+                kernel_scale_m: float, source_weights: np.ndarray | None = None) -> np.ndarray:
     """One weighted Gauss-Newton step of the point-to-plane residuals (identity when there
     are no pairs or the system cannot be solved, as open3d)."""
     if pairs.shape[0] == 0:
@@ -146,6 +149,10 @@ def _plane_step(world: np.ndarray, target: MapTarget, pairs: np.ndarray,
     J[:, 2] = p[:, 0] * normals[:, 1] - p[:, 1] * normals[:, 0]
     J[:, 3:] = normals
     w = tukey_weights(np.abs(r), kernel_scale_m)
+    if source_weights is not None:
+        w = w * np.take(source_weights, pairs[:, 0])
+    if target.weights is not None:
+        w = w * np.take(target.weights, pairs[:, 1])
     Jw = J * w[:, None]
     try:
         x = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))
