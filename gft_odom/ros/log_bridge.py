@@ -58,7 +58,10 @@ def forward_python_logging(ros_logger, period_s: float,
              LoggingSeverity.FATAL: logging.CRITICAL}[severity]
     handler = RosLogHandler(ros_logger, period_s)
     logger = logging.getLogger(name)
-    handler.restore = (logger, logger.level, logger.propagate)
+    # With nodes in one process, the state before the first is what the last one restores.
+    forwarding = [h for h in logger.handlers if isinstance(h, RosLogHandler)]
+    handler.restore = (forwarding[0].restore if forwarding
+                       else (logger, logger.level, logger.propagate))
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
@@ -69,5 +72,6 @@ def stop_forwarding(handler: RosLogHandler) -> None:
     """Undo `forward_python_logging` (the node is destroyed; others may log in this process)."""
     logger, level, propagate = handler.restore
     logger.removeHandler(handler)
-    logger.setLevel(level)
-    logger.propagate = propagate
+    if not any(isinstance(h, RosLogHandler) for h in logger.handlers):
+        logger.setLevel(level)
+        logger.propagate = propagate
