@@ -42,9 +42,9 @@ from scipy.spatial import cKDTree
 from gft_odom.config import GftOdomConfig
 from gft_odom.core.alignment import umeyama_alignment
 from gft_odom.core.geometry import invert_transform, rpy_transform
-from gft_odom.core.localisation import DriveMap, Localiser, PriorMap
+from gft_odom.core.localisation import DriveMap, Localiser, PriorMap, smoothness_weights
 from gft_odom.core.registration.local_map import ANCHOR_SMOOTHNESS
-from gft_odom.core.registration.sweep import SMOOTH_NU, smoothness_from_nu
+from gft_odom.core.registration.sweep import SMOOTH_NU
 from gft_odom.pipeline import DRIVE_MAP_STATUSES, OdometryPipeline
 from gft_odom.sim.later_day import simulate_day
 from gft_odom.sim.orchard import CANOPY
@@ -55,7 +55,6 @@ START_ERROR = rpy_transform((0.2, -0.15, 0.0), (0.0, 0.0, 0.03))
 BIN_M = 50.0
 # A point is smooth (ground, trunks, posts) at this frequency: the map anchors' cut.
 SMOOTH_CUT = ANCHOR_SMOOTHNESS * SMOOTH_NU
-ROUGH_WEIGHT = 0.25
 ROLES = ('all', 'oracle', 'frequency', 'shuffled', 'weighted', 'weighted_shuffled')
 
 
@@ -104,11 +103,6 @@ def _keep(nu: np.ndarray) -> np.ndarray:
     return np.nan_to_num(np.asarray(nu, dtype=float), nan=0.0) >= SMOOTH_CUT
 
 
-def _weight(nu: np.ndarray) -> np.ndarray:
-    """The frequency's second role: rough points (canopy) count a quarter, smooth ones fully."""
-    return ROUGH_WEIGHT + (1.0 - ROUGH_WEIGHT) * smoothness_from_nu(nu, unknown=0.0)
-
-
 def localisers(prior: PriorMap, rng: np.random.Generator, roles) -> dict:
     """name -> (localiser, f(surface, nu) -> (the scan's points kept or None, their weights or
     None))."""
@@ -122,10 +116,11 @@ def localisers(prior: PriorMap, rng: np.random.Generator, roles) -> dict:
                       lambda surface, nu: (_keep(nu), None)),
         'shuffled': (Localiser(prior.selected(_keep(shuffled_nu)), np.eye(4)),
                      lambda surface, nu: (_keep(rng.permutation(nu)), None)),
-        'weighted': (Localiser(prior.weighted(_weight(prior.nu)), np.eye(4)),
-                     lambda surface, nu: (None, _weight(nu))),
-        'weighted_shuffled': (Localiser(prior.weighted(_weight(shuffled_nu)), np.eye(4)),
-                              lambda surface, nu: (None, _weight(rng.permutation(nu)))),
+        'weighted': (Localiser(prior.weighted(smoothness_weights(prior.nu)), np.eye(4)),
+                     lambda surface, nu: (None, smoothness_weights(nu))),
+        'weighted_shuffled': (
+            Localiser(prior.weighted(smoothness_weights(shuffled_nu)), np.eye(4)),
+            lambda surface, nu: (None, smoothness_weights(rng.permutation(nu)))),
     }
     return {name: out[name] for name in roles}
 

@@ -126,7 +126,7 @@ def run_replay(bag_paths: Sequence[str | Path], config: GftOdomConfig,
             latency.append(t_decode + result.timings_s['pipeline'])
             if localisation is not None:
                 fit = localisation.localise(pipeline.registration.deskewed_like_last(
-                    result.filtered.points_xyz), result.T_world_sensor)
+                    result.filtered.points_xyz), result.T_world_sensor, result.nu)
                 if fit is not None:
                     located[fit.status] += 1
                     map_stamps.append(result.stamp_ns)

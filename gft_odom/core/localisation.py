@@ -22,6 +22,7 @@ from gft_odom.core.geometry import invert_transform, rotation_vector, transform_
 from gft_odom.core.registration.config import RegistrationConfig
 from gft_odom.core.registration.local_map import KEYFRAME_ROTATION_RAD, NORMAL_NEIGHBOURS
 from gft_odom.core.registration.matching import MapTarget, point_to_plane_icp
+from gft_odom.core.registration.sweep import smoothness_from_nu
 from gft_odom.core.registration.uncertainty import PoseUncertainty, icp_information
 from gft_odom.core.registration.voxels import voxel_downsample_indices, voxel_keys
 from gft_odom.errors import RegistrationError
@@ -40,6 +41,8 @@ MIN_FITNESS = 0.3
 MAX_CORRECTION_M = 0.5
 MAX_CORRECTION_RAD = 0.1
 MIN_POINTS = 100
+# A rough point's weight in localisation (a smooth one's is 1).
+ROUGH_WEIGHT = 0.25
 # A drive map stops growing here (36 bytes a point with its key, 180 MB).
 MAX_DRIVE_MAP_POINTS = 5_000_000
 # A fit's covariance: the odometry's floor and prior (registration.min_std_*, fallback_std_*).
@@ -250,7 +253,10 @@ class MapLocalisation:
     """
 
     def __init__(self, prior: PriorMap, T_base_sensor: np.ndarray) -> None:
-        self.prior = prior
+        # A map with frequencies weighs its points by smoothness (a map without, every point
+        # alike, as --no-filter): what stays from day to day counts most.
+        self.prior = (prior.weighted(smoothness_weights(prior.nu))
+                      if np.isfinite(prior.nu).any() else prior)
         self.T_base_sensor = np.asarray(T_base_sensor, dtype=float)
         self.localiser: Localiser | None = None
         self._start: np.ndarray | None = None
@@ -265,8 +271,8 @@ class MapLocalisation:
         T_map_odom = T_map_sensor @ invert_transform(self.T_base_sensor @ T_world_sensor)
         self.localiser = Localiser(self.prior, T_map_odom)
 
-    def localise(self, points_sensor: np.ndarray, T_world_sensor: np.ndarray
-                 ) -> LocalisationResult | None:
+    def localise(self, points_sensor: np.ndarray, T_world_sensor: np.ndarray,
+                 nu: np.ndarray | None = None) -> LocalisationResult | None:
         """The scan (deskewed, sensor frame) whose odometry pose is `T_world_sensor`, in the
         map; None until a pose is set."""
         if self._start is not None:
@@ -274,11 +280,20 @@ class MapLocalisation:
             self._start = None
         if self.localiser is None:
             return None
-        return self.localiser.localise(points_sensor, self.T_base_sensor @ T_world_sensor)
+        weights = None if nu is None else smoothness_weights(nu)
+        return self.localiser.localise(points_sensor, self.T_base_sensor @ T_world_sensor,
+                                       weights=weights)
 
     def base_pose(self, result: LocalisationResult) -> np.ndarray:
         """T_map_base of a localised scan."""
         return result.T_map_sensor @ invert_transform(self.T_base_sensor)
+
+
+def smoothness_weights(nu: np.ndarray) -> np.ndarray:
+    """A point's weight in the match by its graph frequency: rough (canopy, no spectrum)
+    ROUGH_WEIGHT, smooth (ground, trunks, posts) 1. On hedged days it cut the error against
+    the map 52-87 % and cost at most 3 % where the canopy had not changed (teach_repeat.md)."""
+    return ROUGH_WEIGHT + (1.0 - ROUGH_WEIGHT) * smoothness_from_nu(nu, unknown=0.0)
 
 
 def planar_pose(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:

@@ -105,7 +105,7 @@ class MapLocalisationMixin:
         if self.localisation is None or not result.accepted:
             return
         points = self.pipeline.registration.deskewed_like_last(result.filtered.points_xyz)
-        fit = self.localisation.localise(points, result.T_world_sensor)
+        fit = self.localisation.localise(points, result.T_world_sensor, result.nu)
         if fit is None:
             return
         self.last_fit = fit

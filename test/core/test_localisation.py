@@ -93,3 +93,19 @@ def test_the_drive_map_grows_past_its_buffers_and_stops_at_its_cap():
     assert len(drive_map) == 6000 and drive_map.full
     np.testing.assert_array_equal(np.bincount(drive_map.nu.astype(int)), [2500, 2500, 1000])
     assert drive_map.add(np.array([[1e6, 0.0, 0.0]])) == 0
+
+
+def test_smooth_points_weigh_fully_rough_and_unknown_ones_a_quarter():
+    from gft_odom.core.localisation import ROUGH_WEIGHT, smoothness_weights
+    np.testing.assert_allclose(smoothness_weights(np.array([0.0, 0.2, 0.4, 0.9, np.nan])),
+                               [ROUGH_WEIGHT, 0.625, 1.0, 1.0, ROUGH_WEIGHT])
+
+
+def test_a_map_with_frequencies_is_matched_weighted_and_one_without_alike():
+    from gft_odom.core.localisation import MapLocalisation
+    scene = box_scene(seed=1)
+    with_nu = MapLocalisation(PriorMap(scene, np.full(len(scene), 0.1, np.float32)), np.eye(4))
+    np.testing.assert_allclose(with_nu.prior.target.weights, 0.25 + 0.75 * 0.25)
+    without = MapLocalisation(PriorMap(scene, np.full(len(scene), np.nan, np.float32)),
+                              np.eye(4))
+    assert without.prior.target.weights is None

@@ -86,10 +86,10 @@ def test_the_same_drive_localises_where_its_odometry_put_it(make_node, scans, sa
     errors = []
     for pose, odom in zip(poses, node.odom_pub.sent):
         assert stamp_to_ns(pose.header.stamp) == stamp_to_ns(odom.header.stamp)
-        # The map is this drive's, in its odom frame: the map pose is the odometry's (the
-        # first scan is in the map; the others are matched to it from a metre away).
+        # The map is this drive's, in its odom frame: the map pose is the odometry's (the map
+        # holds the second scan; the others are matched to it from up to a metre away).
         errors.append(np.linalg.norm(_pose(pose) - _pose(odom)))
-    assert errors[0] < 0.02 and max(errors) < 0.1
+    assert max(errors) < 0.1  # a frame mixed up would be 0.38 m off (the mount)
     covariance = np.array(poses[-1].pose.covariance).reshape(6, 6)
     assert np.all(np.linalg.eigvalsh(covariance) > 0)
     status = node.localisation_status()
