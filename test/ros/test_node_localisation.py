@@ -10,11 +10,8 @@ pytestmark = [pytest.mark.ros]
 
 
 @pytest.fixture(scope='module')
-def scans(orchard_bag) -> list:
-    from gft_odom.io.bags import ScanBagReader
-    from gft_odom.ros.through_node import ros_message_from_bag
-    with ScanBagReader([orchard_bag.bag_path]) as reader:
-        return [ros_message_from_bag(raw) for _, raw in reader.iter_messages()][:8]
+def scans(orchard_messages) -> list:
+    return orchard_messages[:8]
 
 
 @pytest.fixture
